@@ -1,0 +1,15 @@
+"""jaxdmd: discover dynamic models of power-system components from measured data.
+
+The engine follows LLM-DMD (a language model, or the built-in offline proposer, writes candidate
+equations as Python skeletons; jaxdmd checks, compiles and fits them in batches, keeps them in an
+island archive, and extends the variable library when the search stalls).
+
+jaxdmd works in float64 throughout: power-system states differ from their operating point by
+1e-4 pu and less, which float32 cannot resolve. Importing jaxdmd therefore enables JAX's x64 mode.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+__version__ = "0.1.0"
