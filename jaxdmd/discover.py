@@ -1,0 +1,170 @@
+"""Discovery from datasets: build each loop's problem, run loops, hand the DE result to the AE loop.
+
+This is the thin layer between measured recordings (:class:`jaxdmd.data.Dataset`) and the pure
+search (:mod:`jaxdmd.search`):
+
+- :func:`de_problem`: targets are the state derivatives; the states are always arguments; the
+  variable library starts empty and may grow from the catalog (every non-state channel).
+- :func:`ae_problem`: targets are the algebraic variables the DE loop brought in; inputs the DE
+  loop used stay exogenous (they start the AE library); the catalog is the boundary (terminal
+  voltage magnitude and angle), so that the discovered DAE closes on the boundary.
+- :func:`run_loop`: the plain Python loop over ``prompts``, a proposer and ``step``, with a
+  callback per round and the state written atomically after each round (resumable).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdmd import search
+from jaxdmd.data import Dataset, stack_samples
+from jaxdmd.prompts import Contract, Variable
+from jaxdmd.proposers import Proposer
+from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
+
+
+def _variables(ds: Dataset, names: Sequence[str]) -> tuple[Variable, ...]:
+    return tuple(Variable(n, ds.role(n), ds.unit(n)) for n in names)  # type: ignore[arg-type]
+
+
+def _stack(datasets: Sequence[Dataset]) -> dict[str, jax.Array]:
+    names = datasets[0].names
+    for ds in datasets[1:]:
+        if ds.names != names:
+            raise ValueError(f"recordings differ in their channels: {ds.label or '?'}")
+    return {k: jnp.asarray(v) for k, v in stack_samples(datasets, names).items()}
+
+
+def de_problem(
+    datasets: Sequence[Dataset], system: str = "synchronous generator"
+) -> tuple[Problem, Contract]:
+    """The DE loop's problem: state derivatives from every recording, the catalog, the contract."""
+    datasets = list(datasets)
+    first = datasets[0]
+    if not first.state_names:
+        raise ValueError("the data have no state channels (role 'state')")
+    states = first.state_names
+    variables = _stack(datasets)
+    targets = jnp.stack(
+        [jnp.asarray(np.concatenate([ds.derivative(s) for ds in datasets])) for s in states]
+    )
+    others = [n for n in first.names if first.role(n) != "state"]
+    problem = Problem(
+        variables=variables,
+        targets=targets,
+        target_names=states,
+        catalog=_variables(first, others),
+    )
+    contract = Contract(
+        loop="DE",
+        targets=states,
+        states=_variables(first, states),
+        library=(),
+        function_name="equation",
+        system=system,
+    )
+    return problem, contract
+
+
+def ae_problem(
+    datasets: Sequence[Dataset], de_contract: Contract, system: str = "synchronous generator"
+) -> tuple[Problem, Contract]:
+    """The AE loop's problem: explicit equations for the algebraic variables the DE loop uses."""
+    datasets = list(datasets)
+    first = datasets[0]
+    targets = tuple(v.name for v in de_contract.library if v.role == "algebraic")
+    if not targets:
+        raise ValueError("the DE loop used no algebraic variable: there is nothing to close")
+    inputs = tuple(v for v in de_contract.library if v.role == "input")
+    boundary = [n for n in first.names if first.role(n) == "boundary"]
+    spare_inputs = [
+        n for n in first.names if first.role(n) == "input" and n not in {v.name for v in inputs}
+    ]
+    variables = _stack(datasets)
+    problem = Problem(
+        variables=variables,
+        targets=jnp.stack([variables[t] for t in targets]),
+        target_names=targets,
+        catalog=_variables(first, [*boundary, *spare_inputs]),
+    )
+    contract = Contract(
+        loop="AE",
+        targets=targets,
+        states=de_contract.states,
+        library=inputs,
+        function_name="algebraic",
+        system=system,
+    )
+    return problem, contract
+
+
+def run_loop(
+    state: SearchState,
+    proposer: Proposer,
+    *,
+    on_round: Callable[[SearchState, RoundReport], None] | None = None,
+    checkpoint: str | Path | None = None,
+) -> SearchState:
+    """Run rounds until the search ends; write the state after each round if asked."""
+    while not state.done:
+        state, requests = search.prompts(state)
+        samples = proposer.propose(requests)
+        state, report = search.step(state, samples)
+        if checkpoint is not None:
+            search.write_json_atomic(checkpoint, search.state_to_dict(state))
+        if on_round is not None:
+            on_round(state, report)
+    return state
+
+
+def resume_or_init(
+    problem: Problem,
+    contract: Contract,
+    key: jax.Array,
+    config: SearchConfig,
+    checkpoint: str | Path | None,
+) -> SearchState:
+    """The saved state if ``checkpoint`` exists, else a fresh one."""
+    if checkpoint is not None and Path(checkpoint).exists():
+        data = json.loads(Path(checkpoint).read_text())
+        return search.state_from_dict(data, problem, config)
+    return search.init(problem, contract, key, config)
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """The discovered differential-algebraic model and the two loops' final states."""
+
+    de: Equations
+    ae: Equations | None
+    de_state: SearchState
+    ae_state: SearchState | None
+
+    def module_source(self) -> str:
+        """The model as a Python module: skeletons and their fitted parameters."""
+        parts = [
+            '"""Model discovered by jaxdmd: state equations (DE) and algebraic equations (AE)."""',
+            "",
+            "import jax.numpy as jnp  # noqa: F401  (the skeletons may call jnp functions)",
+            "",
+            self.de.source.rstrip(),
+            "",
+            f"DE_PARAMS = {list(self.de.params)!r}",
+            f"DE_TARGETS = {list(self.de.contract.targets)!r}",
+        ]
+        if self.ae is not None:
+            parts += [
+                "",
+                self.ae.source.rstrip(),
+                "",
+                f"AE_PARAMS = {list(self.ae.params)!r}",
+                f"AE_TARGETS = {list(self.ae.contract.targets)!r}",
+            ]
+        return "\n".join(parts) + "\n"

@@ -1,0 +1,162 @@
+"""Equation lines: a skeleton seen as one expression per output, and skeletons assembled from lines.
+
+The state equations of a dynamic model are separable: each output of a skeleton is its own
+equation with its own parameters. This module turns a *checked* skeleton source into one
+self-contained expression per output (local assignments inlined, parameters renumbered from
+``p[0]``) and assembles a new skeleton from such lines. The search uses it to recombine the best
+line of each equation across candidates, the offline proposer to edit equations term by term.
+
+Only sources that passed :func:`jaxdmd.skeleton.check` are handed here; nothing here executes code.
+"""
+
+from __future__ import annotations
+
+import ast
+import copy
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Line:
+    """One output equation: an expression over named variables and ``p[0] .. p[n_params-1]``."""
+
+    expr: ast.expr
+    n_params: int
+
+    @property
+    def text(self) -> str:
+        return ast.unparse(self.expr)
+
+    def variables(self) -> frozenset[str]:
+        return frozenset(
+            n.id for n in ast.walk(self.expr) if isinstance(n, ast.Name) and n.id != "p"
+        )
+
+
+def _param_index(node: ast.AST) -> int | None:
+    if (
+        isinstance(node, ast.Subscript)
+        and isinstance(node.value, ast.Name)
+        and node.value.id == "p"
+        and isinstance(node.slice, ast.Constant)
+        and isinstance(node.slice.value, int)
+    ):
+        return node.slice.value
+    return None
+
+
+class _Inline(ast.NodeTransformer):
+    def __init__(self, env: dict[str, ast.expr]):
+        self.env = env
+
+    def visit_Name(self, node: ast.Name) -> ast.expr:
+        if node.id in self.env:
+            return copy.deepcopy(self.env[node.id])
+        return node
+
+
+class _Renumber(ast.NodeTransformer):
+    """Renumber ``p[i]`` to consecutive indices starting at ``offset``, in order of appearance."""
+
+    def __init__(self, offset: int = 0):
+        self.mapping: dict[int, int] = {}
+        self.offset = offset
+
+    def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+        index = _param_index(node)
+        if index is None:
+            return self.generic_visit(node)
+        if index not in self.mapping:
+            self.mapping[index] = self.offset + len(self.mapping)
+        return _p(self.mapping[index])
+
+
+def _p(index: int) -> ast.Subscript:
+    return ast.Subscript(value=ast.Name("p", ast.Load()), slice=ast.Constant(index), ctx=ast.Load())
+
+
+def function_def(source: str) -> ast.FunctionDef:
+    """The single function definition of a checked skeleton source."""
+    tree = ast.parse(source)
+    defs = [n for n in tree.body if isinstance(n, ast.FunctionDef)]
+    if len(defs) != 1:
+        raise ValueError("expected exactly one function definition")
+    return defs[0]
+
+
+def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], ...]]:
+    """Split a checked skeleton into self-contained output lines.
+
+    Returns the lines and, for each line, the original parameter indices in the order of the
+    line's new indices (so ``params[list(mapping[j])]`` are line ``j``'s fitted parameters).
+    """
+    fn = function_def(source)
+    env: dict[str, ast.expr] = {}
+    outputs: list[ast.expr] = []
+    for stmt in fn.body:
+        if isinstance(stmt, ast.Assign):
+            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            for target in stmt.targets:
+                if isinstance(target, ast.Name):
+                    env[target.id] = value
+                elif isinstance(target, ast.Tuple) and isinstance(value, ast.Tuple):
+                    for t, v in zip(target.elts, value.elts, strict=True):
+                        if isinstance(t, ast.Name):
+                            env[t.id] = v
+                else:
+                    raise ValueError(f"cannot split assignment: {ast.unparse(stmt)}")
+        elif isinstance(stmt, ast.AugAssign) and isinstance(stmt.target, ast.Name):
+            current = env.get(stmt.target.id, ast.Name(stmt.target.id, ast.Load()))
+            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            env[stmt.target.id] = ast.BinOp(left=current, op=stmt.op, right=value)
+        elif isinstance(stmt, ast.Return) and stmt.value is not None:
+            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            outputs = list(value.elts) if isinstance(value, ast.Tuple) else [value]
+        elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
+            continue  # docstring
+        else:
+            raise ValueError(f"cannot split statement: {ast.unparse(stmt)}")
+    lines, mappings = [], []
+    for expr in outputs:
+        renumber = _Renumber()
+        new = renumber.visit(copy.deepcopy(expr))
+        ast.fix_missing_locations(new)
+        lines.append(Line(new, len(renumber.mapping)))
+        mappings.append(tuple(renumber.mapping))
+    return tuple(lines), tuple(mappings)
+
+
+def assemble(
+    name: str,
+    arguments: Sequence[str],
+    lines: Sequence[Line],
+    outputs: Sequence[str],
+) -> str:
+    """Assemble a skeleton source from lines: one assignment per output, then the return."""
+    offset = 0
+    body: list[str] = []
+    for out, line in zip(outputs, lines, strict=True):
+        renumber = _Renumber(offset)
+        expr = renumber.visit(copy.deepcopy(line.expr))
+        # keep every parameter slot of the line even if the renumbering saw fewer
+        offset += max(line.n_params, len(renumber.mapping))
+        body.append(f"    {out} = {ast.unparse(ast.fix_missing_locations(expr))}")
+    used = set().union(*(line.variables() for line in lines)) if lines else set()
+    args = [a for a in arguments if a in used]
+    header = f"def {name}({', '.join([*args, 'p'])}):"
+    return "\n".join([header, *body, f"    return {', '.join(outputs)}"]) + "\n"
+
+
+def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
+    """The expression with fitted parameter values in place of ``p[i]`` (for readable output)."""
+
+    class _Sub(ast.NodeTransformer):
+        def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+            index = _param_index(node)
+            if index is None:
+                return self.generic_visit(node)
+            return ast.Constant(float(f"{params[index]:.{digits}g}"))
+
+    new = _Sub().visit(copy.deepcopy(expr))
+    return ast.unparse(ast.fix_missing_locations(new))

@@ -1,0 +1,528 @@
+"""The built-in offline proposer: a term-level evolutionary search that writes skeleton text.
+
+It reads the same request a language model reads (the contract with its variable library, and
+in-context examples with their scores and per-equation losses) and answers with skeleton source
+and, like a model, a JSON block of variable requests. It knows no target equation: it edits the
+examples' equations term by term, drawing new terms from a grammar of generic building blocks
+over whatever variables the contract names:
+
+- each variable; for a per-unit quantity that sits near 1 (a speed, a voltage) its deviation
+  ``(x - 1)`` instead;
+- for angles (unit ``rad``): sines and cosines of their differences (of the angle itself when
+  there is only one);
+- for a magnitude/angle pair on the boundary (a phasor such as V, theta): its projections
+  ``V * sin(a - theta)``, ``V * cos(a - theta)`` onto every other angle a (a Park transform);
+- products of two such blocks, and the constant.
+
+Operators (one to three per sample, drawn at random): add a term, grow an equation by greedy
+forward selection, remove the least useful term, swap a term, prune terms whose fitted effect is
+negligible, and cross over equations between two parents (each equation from the parent with
+the lower loss on it). New terms are drawn from a softmax over how much of the equation's
+residual each explains once the terms already present are projected out (with some uniform
+exploration), on a subsample of the data the proposer was built with. Variable requests rank the
+catalog variables outside the library by the same measure. Deterministic given the request's seed.
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxdmd import lines as ln
+from jaxdmd.prompts import Contract, PromptRequest, Variable
+from jaxdmd.proposers import Sample
+
+_NUMPY = {
+    "sin": np.sin,
+    "cos": np.cos,
+    "tan": np.tan,
+    "exp": np.exp,
+    "log": np.log,
+    "sqrt": np.sqrt,
+    "tanh": np.tanh,
+    "sinh": np.sinh,
+    "cosh": np.cosh,
+    "arctan": np.arctan,
+    "arctan2": np.arctan2,
+    "abs": np.abs,
+    "where": np.where,
+    "clip": np.clip,
+    "maximum": np.maximum,
+    "minimum": np.minimum,
+    "sign": np.sign,
+    "square": np.square,
+}
+_BINOPS = {
+    ast.Add: np.add,
+    ast.Sub: np.subtract,
+    ast.Mult: np.multiply,
+    ast.Div: np.divide,
+    ast.Pow: np.power,
+}
+_CMP = {
+    ast.Lt: np.less,
+    ast.LtE: np.less_equal,
+    ast.Gt: np.greater,
+    ast.GtE: np.greater_equal,
+    ast.Eq: np.equal,
+    ast.NotEq: np.not_equal,
+}
+
+
+def evaluate(node: ast.AST, data: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Evaluate a parameter-free expression of a checked skeleton with NumPy."""
+    if isinstance(node, ast.Expression):
+        return evaluate(node.body, data)
+    if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
+        return np.asarray(float(node.value))
+    if isinstance(node, ast.Name):
+        if node.id == "pi":
+            return np.asarray(np.pi)
+        return data[node.id]
+    if isinstance(node, ast.Attribute) and node.attr == "pi":
+        return np.asarray(np.pi)
+    if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+        return _BINOPS[type(node.op)](evaluate(node.left, data), evaluate(node.right, data))
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        value = evaluate(node.operand, data)
+        return -value if isinstance(node.op, ast.USub) else value
+    if isinstance(node, ast.Call):
+        name = node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id
+        return _NUMPY[name](*(evaluate(a, data) for a in node.args))
+    if isinstance(node, ast.IfExp):
+        return np.where(
+            evaluate(node.test, data), evaluate(node.body, data), evaluate(node.orelse, data)
+        )
+    if isinstance(node, ast.Compare) and len(node.ops) == 1:
+        return _CMP[type(node.ops[0])](
+            evaluate(node.left, data), evaluate(node.comparators[0], data)
+        )
+    raise ValueError(f"cannot evaluate {ast.unparse(node)}")
+
+
+# ----------------------------------------------------------------------------------------------
+# equations as term lists
+
+
+def _is_param(node: ast.AST) -> bool:
+    return (
+        isinstance(node, ast.Subscript)
+        and isinstance(node.value, ast.Name)
+        and (node.value.id == "p")
+    )
+
+
+def _has_param(node: ast.AST) -> bool:
+    return any(_is_param(n) for n in ast.walk(node))
+
+
+def _summands(node: ast.expr) -> list[ast.expr]:
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add | ast.Sub):
+        right = node.right
+        if isinstance(node.op, ast.Sub):
+            right = ast.UnaryOp(op=ast.USub(), operand=right)
+        return [*_summands(node.left), *_summands(right)]
+    return [node]
+
+
+def _factors(node: ast.expr) -> list[ast.expr]:
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Mult):
+        return [*_factors(node.left), *_factors(node.right)]
+    return [node]
+
+
+def _strip(node: ast.expr) -> str | None:
+    """The term of a summand ``coefficient * term`` (the coefficient a parameter or constant)."""
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        return _strip(node.operand)
+    if not _has_param(node):
+        if isinstance(node, ast.Constant):
+            return "1"
+        return ast.unparse(node)
+    if _is_param(node):
+        return "1"
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+        if _has_param(node.right):
+            return None
+        top = _strip(node.left)
+        if top is None:
+            return None
+        return ast.unparse(node.right) if top == "1" else f"{_wrap(top)} / {_wrap_den(node.right)}"
+    factors = _factors(node)
+    params = [f for f in factors if _is_param(f)]
+    rest = [f for f in factors if not _is_param(f)]
+    if len(params) != 1 or any(_has_param(f) for f in rest):
+        return None
+    rest = [f for f in rest if not isinstance(f, ast.Constant)]
+    if not rest:
+        return "1"
+    return " * ".join(_wrap(ast.unparse(f)) for f in rest)
+
+
+def _wrap(text: str) -> str:
+    tree = ast.parse(text, mode="eval").body
+    if isinstance(tree, ast.BinOp) and isinstance(tree.op, ast.Add | ast.Sub):
+        return f"({text})"
+    return text
+
+
+def _wrap_den(node: ast.expr) -> str:
+    text = ast.unparse(node)
+    return f"({text})" if isinstance(node, ast.BinOp) else text
+
+
+@dataclass(frozen=True)
+class Equation:
+    """A target's equation: a sum of terms with one coefficient each, or an opaque line."""
+
+    terms: tuple[str, ...] = ()
+    opaque: ln.Line | None = None
+
+    def render(self) -> ln.Line:
+        if self.opaque is not None:
+            return self.opaque
+        parts = [
+            f"p[{k}]" if term == "1" else f"p[{k}] * {_wrap(term)}"
+            for k, term in enumerate(self.terms)
+        ]
+        expr = ast.parse(" + ".join(parts) if parts else "0.0 * p[0]", mode="eval").body
+        return ln.Line(expr, max(len(self.terms), 1))
+
+
+def parse_equations(source: str) -> list[Equation]:
+    """The equations of a checked skeleton as term lists (opaque where not linear in p)."""
+    lines, _ = ln.split_lines(source)
+    out = []
+    for line in lines:
+        terms = [_strip(s) for s in _summands(line.expr)]
+        if any(t is None for t in terms):
+            out.append(Equation(opaque=line))
+        else:
+            unique = tuple(dict.fromkeys(t for t in terms if t is not None))
+            out.append(Equation(terms=unique))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# the grammar
+
+
+def _near_one(values: np.ndarray) -> bool:
+    return bool(abs(np.mean(values) - 1.0) < 0.1 and np.std(values) < 0.1)
+
+
+def building_blocks(
+    variables: Sequence[Variable], data: Mapping[str, np.ndarray]
+) -> tuple[list[str], list[str]]:
+    """Level-one blocks (usable in products) and angle terms (used alone) for these variables."""
+    angles = [v.name for v in variables if v.unit == "rad"]
+    blocks: list[str] = []
+    for v in variables:
+        if v.unit == "rad":
+            continue
+        per_unit = v.unit in ("pu", "") and v.name in data
+        blocks.append(f"({v.name} - 1)" if per_unit and _near_one(data[v.name]) else v.name)
+    if len(angles) >= 2:
+        for a, b in itertools.combinations(angles, 2):
+            blocks += [f"jnp.sin({a} - {b})", f"jnp.cos({a} - {b})"]
+    else:
+        for a in angles:
+            blocks += [f"jnp.sin({a})", f"jnp.cos({a})"]
+    magnitudes = [v.name for v in variables if v.role == "boundary" and v.unit != "rad"]
+    boundary_angles = [v.name for v in variables if v.role == "boundary" and v.unit == "rad"]
+    for m, theta in itertools.product(magnitudes, boundary_angles):
+        for a in angles:
+            if a != theta:
+                blocks += [f"{m} * jnp.sin({a} - {theta})", f"{m} * jnp.cos({a} - {theta})"]
+    return blocks, angles
+
+
+def term_pool(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> list[str]:
+    """All candidate terms: the constant, angles, level-one blocks and their pairwise products."""
+    blocks, angles = building_blocks(variables, data)
+    pool = ["1", *angles, *blocks]
+    pool += [
+        f"{_wrap(a)} * {_wrap(b)}" for a, b in itertools.combinations_with_replacement(blocks, 2)
+    ]
+    return list(dict.fromkeys(pool))
+
+
+# ----------------------------------------------------------------------------------------------
+# the proposer
+
+_OPERATORS = ("add", "grow", "remove", "swap", "simplify")
+_OPERATOR_WEIGHTS = (0.35, 0.3, 0.1, 0.15, 0.1)
+
+
+@dataclass(frozen=True)
+class OfflineConfig:
+    max_samples: int = 3000  # subsample of the data used to rank terms
+    explore: float = 0.25  # probability of drawing a new term uniformly instead of by rank
+    rank_temperature: float = 0.1  # softmax temperature over normalised explained fractions
+    grow_terms: int = 4  # terms added by one greedy growth
+    min_gain: float = 1e-4  # a term must lower the equation's NMSE by this much to be added
+    prune_effect: float = 2e-3  # prune a term whose fitted effect is below this (x target std)
+    max_terms: int = 12  # terms per equation
+    max_requests: int = 3  # variables requested per answer
+    min_request_gain: float = 1e-3  # NMSE drop a requested variable's best term must bring
+
+
+class OfflineProposer:
+    """The default proposer; built with the data it may look at (like an engineer at a plot)."""
+
+    def __init__(
+        self,
+        variables: Mapping[str, np.ndarray],
+        targets: np.ndarray,
+        catalog: Sequence[Variable] = (),
+        config: OfflineConfig | None = None,
+        weights: np.ndarray | None = None,
+    ):
+        self.config = config or OfflineConfig()
+        targets = np.asarray(targets, dtype=float)
+        n = targets.shape[1]
+        stride = max(1, int(np.ceil(n / self.config.max_samples)))
+        index = np.arange(0, n, stride)
+        if weights is not None:
+            index = index[np.asarray(weights)[index] > 0]
+        self.data = {k: np.asarray(v, dtype=float)[index] for k, v in variables.items()}
+        self.targets = targets[:, index]
+        self.scale = self.targets.std(axis=1) + 1e-300
+        self.catalog = tuple(catalog)
+        self._cache: dict[str, np.ndarray | None] = {}
+
+    @classmethod
+    def for_problem(cls, problem: object, config: OfflineConfig | None = None) -> OfflineProposer:
+        """Build from a :class:`jaxdmd.search.Problem`."""
+        weights = getattr(problem, "weights", None)
+        return cls(
+            {k: np.asarray(v) for k, v in problem.variables.items()},  # type: ignore[attr-defined]
+            np.asarray(problem.targets),  # type: ignore[attr-defined]
+            problem.catalog,  # type: ignore[attr-defined]
+            config,
+            None if weights is None else np.asarray(weights),
+        )
+
+    # -- numerics --------------------------------------------------------------------------
+
+    def column(self, term: str) -> np.ndarray | None:
+        if term not in self._cache:
+            try:
+                with np.errstate(all="ignore"):
+                    value = np.broadcast_to(
+                        evaluate(ast.parse(term, mode="eval"), self.data),
+                        self.targets.shape[1:],
+                    ).astype(float)
+                ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
+                self._cache[term] = value if ok else None
+            except (ValueError, KeyError, TypeError, ZeroDivisionError):
+                self._cache[term] = None
+        return self._cache[term]
+
+    def design(self, terms: Sequence[str]) -> np.ndarray:
+        cols = [self.column(t) for t in terms]
+        cols = [c for c in cols if c is not None]
+        return np.stack(cols, axis=1) if cols else np.zeros((self.targets.shape[1], 0))
+
+    def solve(self, j: int, terms: Sequence[str]) -> tuple[np.ndarray, np.ndarray, float]:
+        """Least-squares coefficients, residual and NMSE of equation j with these terms."""
+        y = self.targets[j]
+        x = self.design(terms)
+        if x.shape[1] == 0:
+            return np.zeros(0), y, float(np.mean(y**2) / self.scale[j] ** 2)
+        coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+        residual = y - x @ coef
+        return coef, residual, float(np.mean(residual**2) / self.scale[j] ** 2)
+
+    def explained(self, j: int, terms: Sequence[str], pool: Sequence[str]) -> np.ndarray:
+        """Share of equation j's residual each pool term explains beyond ``terms``."""
+        _, residual, _ = self.solve(j, terms)
+        cand = [t for t in pool if self.column(t) is not None]
+        if not cand:
+            return np.zeros(0)
+        phi = self.design(cand)
+        x = self.design(terms)
+        if x.shape[1]:
+            q, _ = np.linalg.qr(x)
+            phi = phi - q @ (q.T @ phi)
+        norms = np.einsum("ij,ij->j", phi, phi)
+        rr = float(residual @ residual) + 1e-300
+        share = np.where(norms > 1e-12 * len(residual), (residual @ phi) ** 2 / (norms * rr), 0)
+        out = np.zeros(len(pool))
+        index = {t: i for i, t in enumerate(cand)}
+        for i, t in enumerate(pool):
+            if t in index:
+                out[i] = share[index[t]]
+        return out
+
+    # -- operators -------------------------------------------------------------------------
+
+    def _add(self, rng, j, terms, pool, greedy=False) -> list[str]:
+        terms = list(terms)
+        if len(terms) >= self.config.max_terms:
+            return terms
+        free = [t for t in pool if t not in terms]
+        if not free:
+            return terms
+        share = self.explained(j, terms, free)
+        if greedy or rng.random() > self.config.explore:
+            top = share.max()
+            if top <= 0:
+                return terms
+            logits = (share / top - 1.0) / self.config.rank_temperature
+            prob = np.exp(logits - logits.max())
+            choice = (
+                int(np.argmax(share)) if greedy else int(rng.choice(len(free), p=prob / prob.sum()))
+            )
+        else:
+            choice = int(rng.integers(len(free)))
+        _, _, before = self.solve(j, terms)
+        _, _, after = self.solve(j, [*terms, free[choice]])
+        if before - after >= self.config.min_gain or (not greedy and rng.random() < 0.1):
+            terms.append(free[choice])
+        return terms
+
+    def _remove(self, rng, j, terms) -> list[str]:
+        if len(terms) <= 1:
+            return list(terms)
+        if rng.random() < 0.5:
+            drop = int(rng.integers(len(terms)))
+        else:
+            losses = [self.solve(j, terms[:i] + terms[i + 1 :])[2] for i in range(len(terms))]
+            drop = int(np.argmin(losses))
+        return [t for i, t in enumerate(terms) if i != drop]
+
+    def _prune(self, j, terms) -> list[str]:
+        terms = list(terms)
+        while len(terms) > 1:
+            coef, _, _ = self.solve(j, terms)
+            x = self.design(terms)
+            if x.shape[1] != len(terms):
+                return terms
+            effect = np.abs(coef) * x.std(axis=0) / self.scale[j]
+            effect[[t == "1" for t in terms]] = np.inf  # the offset is judged by removal below
+            worst = int(np.argmin(effect))
+            if effect[worst] >= self.config.prune_effect:
+                break
+            terms.pop(worst)
+        return terms
+
+    def _simplify(self, j, terms) -> list[str]:
+        """Backward elimination: drop terms whose removal costs < 1 % of the NMSE (or 1e-5)."""
+        terms = list(terms)
+        while len(terms) > 1:
+            _, _, base = self.solve(j, terms)
+            losses = [self.solve(j, terms[:i] + terms[i + 1 :])[2] for i in range(len(terms))]
+            i = int(np.argmin(losses))
+            if losses[i] - base > max(0.01 * base, 1e-5):
+                break
+            terms.pop(i)
+        return terms
+
+    # -- proposing ---------------------------------------------------------------------------
+
+    def propose(self, requests: Sequence[PromptRequest]) -> list[Sample]:
+        samples = []
+        for request in requests:
+            rng = np.random.default_rng(request.seed)
+            for _ in range(request.n_samples):
+                text = self.answer(request, rng)
+                samples.append(Sample(text=text, island=request.island, origin="offline"))
+        return samples
+
+    def answer(self, request: PromptRequest, rng: np.random.Generator) -> str:
+        contract = request.contract
+        variables = (*contract.states, *contract.library)
+        pool = term_pool(variables, self.data)
+        parents = [(ex, parse_equations(ex.source)) for ex in request.examples]
+        n_out = len(contract.targets)
+        if not parents:
+            equations = [Equation(terms=("1",)) for _ in range(n_out)]
+            losses = [1.0] * n_out
+        else:
+            # the better parents more often; examples come ordered worst to best
+            weights = np.arange(1, len(parents) + 1, dtype=float) ** 2
+            first = int(rng.choice(len(parents), p=weights / weights.sum()))
+            equations = list(parents[first][1])
+            losses = list(parents[first][0].losses) or [1.0] * n_out
+            if len(parents) > 1 and rng.random() < 0.35:
+                other = parents[int(rng.integers(len(parents)))]
+                for j in range(n_out):
+                    if other[0].losses[j] < losses[j] or rng.random() < 0.1:
+                        equations[j], losses[j] = other[1][j], other[0].losses[j]
+        ops = int(rng.integers(1, 4))
+        for _ in range(ops):
+            weights = np.asarray(losses, dtype=float) + 1e-6
+            j = int(rng.choice(n_out, p=weights / weights.sum()))
+            eq = equations[j]
+            if eq.opaque is not None:
+                eq = Equation(terms=("1",))  # an opaque line is rebuilt from terms
+            terms = list(eq.terms)
+            op = rng.choice(
+                ["add", "grow", "remove", "swap", "simplify"], p=[0.35, 0.3, 0.1, 0.15, 0.1]
+            )
+            if op == "add":
+                terms = self._add(rng, j, terms, pool)
+            elif op == "grow":
+                for _ in range(int(rng.integers(1, self.config.grow_terms + 1))):
+                    terms = self._add(rng, j, terms, pool, greedy=True)
+            elif op == "remove":
+                terms = self._remove(rng, j, terms)
+            elif op == "swap":
+                terms = self._add(rng, j, self._remove(rng, j, terms), pool)
+            else:
+                terms = self._simplify(j, terms)
+            terms = self._prune(j, terms)
+            _, _, loss = self.solve(j, terms)
+            equations[j], losses[j] = Equation(terms=tuple(terms)), loss
+        source = ln.assemble(
+            contract.function_name,
+            contract.arguments,
+            [e.render() for e in equations],
+            [f"d_{t}" if contract.loop == "DE" else f"{t}_" for t in contract.targets],
+        )
+        requests = self.variable_requests(contract, equations)
+        answer = f"```python\n{source}```\n"
+        if requests:
+            answer += "```json\n" + json.dumps({"variables": requests}) + "\n```\n"
+        return answer
+
+    def variable_requests(
+        self, contract: Contract, equations: Sequence[Equation]
+    ) -> list[dict[str, str]]:
+        """Catalog variables outside the library, ranked by the residual share they explain."""
+        have = set(contract.arguments)
+        outside = [v for v in self.catalog if v.name not in have and v.name in self.data]
+        if not outside:
+            return []
+        base = (*contract.states, *contract.library)
+        base_pool = set(term_pool(base, self.data))
+        scores = []
+        for v in outside:
+            pool = [t for t in term_pool((*base, v), self.data) if t not in base_pool]
+            best, where = 0.0, 0
+            for j, eq in enumerate(equations):
+                terms = list(eq.terms) if eq.opaque is None else ["1"]
+                _, _, loss = self.solve(j, terms)
+                share = float(self.explained(j, terms, pool).max(initial=0.0)) * min(loss, 1.0)
+                if share > best:
+                    best, where = share, j
+            scores.append((best, v, where))
+        scores.sort(key=lambda s: -s[0])
+        out = []
+        for share, v, j in scores[: self.config.max_requests]:
+            if share < self.config.min_request_gain:
+                break
+            out.append(
+                {
+                    "name": v.name,
+                    "role": v.role,
+                    "reason": f"explains {share:.1%} of the error of {contract.targets[j]}",
+                }
+            )
+        return out

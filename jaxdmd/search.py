@@ -1,0 +1,562 @@
+"""The search: a pure state, ``prompts(state)`` and ``step(state, samples)``.
+
+One round of LLM-DMD (paper, Sec. III) is
+
+    state, requests = prompts(state)          # in-context examples drawn from the islands
+    samples = proposer.propose(requests)      # the only part that may talk to the world
+    state, report = step(state, samples)      # check, compile, fit in one batch, register
+
+``step`` is pure and deterministic given the state (its PRNG key included): it parses and checks
+the samples, compiles them, fits the whole batch in one call, registers the results in the island
+archive, records the best score, and applies the paper's rules:
+
+- variable extension when the search stagnates: the best-score gain stayed <= epsilon for R
+  rounds (since the last extension) and the best score is <= -gamma. The JSON variable requests
+  of the top-k skeletons are read; a requested variable the data holds joins the variable
+  library; one it lacks is reported as a measurement to add;
+- termination when the best score stays above -gamma for R rounds, or after ``max_rounds``.
+
+Beyond the paper, each round also offers one recombined candidate: the best line of every
+equation, taken from whichever candidates hold them (the equations are separable).
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+import json
+import os
+import tempfile
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdmd import archive as arc
+from jaxdmd import lines as ln
+from jaxdmd.fit import FitConfig, FitResult, fit_batch
+from jaxdmd.prompts import Contract, Example, PromptRequest, Variable, parse_variable_requests
+from jaxdmd.prompts import render as render_prompt
+from jaxdmd.proposers import Sample
+from jaxdmd.skeleton import Skeleton, SkeletonError, compile_skeleton
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """Hyper-parameters of a loop; the defaults are the paper's where it gives them."""
+
+    n_islands: int = 10  # m
+    prompts_per_round: int = 4
+    samples_per_prompt: int = 4  # prompts_per_round * samples_per_prompt = n_b
+    examples_per_prompt: int = 2
+    tau_c: float = 0.2
+    tau_l: float = 0.2
+    epsilon: float = 0.01
+    gamma: float = 0.01
+    patience: int = 3  # R
+    max_rounds: int = 15
+    top_k: int = 3  # skeletons whose variable requests are read at an extension
+    reset_period: int = 4  # rounds between resets of the weaker half of the islands; 0: never
+    recombine: bool = True
+    fit: FitConfig = field(default_factory=FitConfig)
+
+
+class Problem(eqx.Module):
+    """The data a loop fits: every measured channel (the catalog) and the targets.
+
+    ``variables`` holds all channels a skeleton could ever use (states and the whole catalog);
+    a skeleton sees only those in its contract. ``targets`` are the state derivatives (DE loop)
+    or the algebraic variables (AE loop), one row per target, several recordings concatenated.
+    """
+
+    variables: dict[str, jax.Array]
+    targets: jax.Array
+    target_names: tuple[str, ...] = eqx.field(static=True)
+    catalog: tuple[Variable, ...] = eqx.field(static=True)
+    weights: jax.Array | None = None
+
+    def find(self, name: str) -> Variable | None:
+        return next((v for v in self.catalog if v.name == name), None)
+
+
+@dataclass(frozen=True)
+class RoundReport:
+    """What one ``step`` did, for progress display and the run's summary."""
+
+    round: int
+    n_samples: int
+    n_valid: int
+    dropped: tuple[tuple[str, int], ...]  # reason -> count
+    best_score: float
+    improved: bool
+    joined: tuple[str, ...] = ()  # variables that joined the library this round
+    missing: tuple[str, ...] = ()  # requested variables the data lacks
+    done: bool = False
+    stop_reason: str = ""
+
+
+class SearchState(eqx.Module):
+    """Everything a loop knows; an immutable pytree. Only ``key`` and the data are arrays."""
+
+    contract: Contract = eqx.field(static=True)
+    archive: arc.Archive = eqx.field(static=True)
+    problem: Problem
+    key: jax.Array
+    config: SearchConfig = eqx.field(static=True)
+    history: tuple[float, ...] = eqx.field(static=True, default=())
+    joined: tuple[tuple[str, int], ...] = eqx.field(static=True, default=())
+    missing: tuple[str, ...] = eqx.field(static=True, default=())
+    iteration: int = eqx.field(static=True, default=0)
+    last_extension: int = eqx.field(static=True, default=0)
+    done: bool = eqx.field(static=True, default=False)
+    stop_reason: str = eqx.field(static=True, default="")
+
+
+# ----------------------------------------------------------------------------------------------
+# seeds, compilation, fitting
+
+
+def linear_seed(contract: Contract) -> str:
+    """The paper's seed skeleton: every target linear in every argument, plus a constant."""
+    args = contract.arguments
+    body, k = [], 0
+    outputs = _output_names(contract)
+    for out in outputs:
+        terms = [f"p[{k}]"] + [f"p[{k + 1 + i}] * {a}" for i, a in enumerate(args)]
+        k += 1 + len(args)
+        body.append(f"    {out} = " + " + ".join(terms))
+    head = f"def {contract.function_name}({', '.join([*args, 'p'])}):"
+    return "\n".join([head, *body, f"    return {', '.join(outputs)}"]) + "\n"
+
+
+def _output_names(contract: Contract) -> list[str]:
+    return [f"d_{t}" if contract.loop == "DE" else f"{t}_" for t in contract.targets]
+
+
+def _compile(text: str, contract: Contract) -> Skeleton:
+    try:
+        return compile_skeleton(
+            text,
+            variables=contract.arguments,
+            n_outputs=len(contract.targets),
+            function_name=contract.function_name,
+        )
+    except SkeletonError:
+        return compile_skeleton(text, variables=contract.arguments, n_outputs=len(contract.targets))
+
+
+def _fit(
+    skeletons: Sequence[Skeleton], problem: Problem, key: jax.Array, config: FitConfig
+) -> list[FitResult]:
+    names = sorted({a for s in skeletons for a in s.arguments})
+    variables = {n: problem.variables[n] for n in names}
+    return fit_batch(
+        skeletons, variables, problem.targets, key=key, config=config, weights=problem.weights
+    )
+
+
+def _entry(skeleton: Skeleton, result: FitResult, round_: int) -> arc.Entry:
+    return arc.Entry(
+        source=skeleton.source,
+        score=float(result.score),
+        losses=tuple(float(x) for x in result.losses),
+        params=tuple(float(x) for x in result.params),
+        length=skeleton.length,
+        round=round_,
+        requests=tuple(skeleton.requests),
+    )
+
+
+def init(
+    problem: Problem,
+    contract: Contract,
+    key: jax.Array,
+    config: SearchConfig | None = None,
+    seed: str | None = None,
+) -> SearchState:
+    """A fresh search: every island seeded with the linear skeleton (or ``seed``), fitted."""
+    config = config or SearchConfig()
+    _check_problem(problem, contract)
+    key, fit_key = jax.random.split(key)
+    skeleton = _compile(seed or linear_seed(contract), contract)
+    (result,) = _fit([skeleton], problem, fit_key, config.fit)
+    if result.error is not None:
+        raise ValueError(f"the seed skeleton could not be fitted: {result.error}")
+    archive = arc.new_archive(
+        _entry(skeleton, result, 0),
+        arc.ArchiveConfig(
+            n_islands=config.n_islands,
+            tau_c=config.tau_c,
+            tau_l=config.tau_l,
+            examples_per_prompt=config.examples_per_prompt,
+            reset_period=config.reset_period,
+        ),
+    )
+    return SearchState(
+        contract=contract,
+        archive=archive,
+        problem=problem,
+        key=key,
+        config=config,
+        history=(float(result.score),),
+        joined=tuple((v.name, 0) for v in contract.library),
+    )
+
+
+def _check_problem(problem: Problem, contract: Contract) -> None:
+    missing = [n for n in contract.arguments if n not in problem.variables]
+    if missing:
+        raise ValueError(f"the data lack the contract's variables: {', '.join(missing)}")
+    if problem.targets.shape[0] != len(contract.targets):
+        raise ValueError(
+            f"{len(contract.targets)} targets in the contract, "
+            f"{problem.targets.shape[0]} rows of target data"
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# the round
+
+
+def prompts(state: SearchState) -> tuple[SearchState, tuple[PromptRequest, ...]]:
+    """Draw in-context examples for this round's prompts and render them."""
+    key, *keys = jax.random.split(state.key, state.config.prompts_per_round + 1)
+    requests = []
+    for k in keys:
+        k_sample, k_seed = jax.random.split(k)
+        island, entries = arc.sample_examples(state.archive, k_sample)
+        examples = tuple(
+            Example(source=e.source, score=e.score, losses=e.losses, params=e.params)
+            for e in entries
+        )
+        seed = int(jax.random.randint(k_seed, (), 0, 2**31 - 1))
+        requests.append(
+            render_prompt(
+                state.contract,
+                examples,
+                n_samples=state.config.samples_per_prompt,
+                island=island,
+                seed=seed,
+            )
+        )
+    return replace_state(state, key=key), tuple(requests)
+
+
+def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, RoundReport]:
+    """Evaluate one round of samples and apply the stopping and extension rules (pure)."""
+    if state.done:
+        raise ValueError(f"the search has ended ({state.stop_reason}); start a new one")
+    round_ = state.iteration + 1
+    key, fit_key, reset_key = jax.random.split(state.key, 3)
+    dropped: Counter[str] = Counter()
+    seen = {e.source for isl in state.archive.islands for e in isl.entries}
+    candidates: list[tuple[Skeleton, int]] = []
+    for sample in samples:
+        try:
+            skeleton = _compile(sample.text, state.contract)
+        except SkeletonError as err:
+            dropped[_reason(err)] += 1
+            continue
+        if skeleton.source in seen:
+            dropped["already evaluated"] += 1
+            continue
+        seen.add(skeleton.source)
+        candidates.append((skeleton, sample.island % state.config.n_islands))
+    if state.config.recombine:
+        recombined = _recombined(state)
+        if recombined is not None and recombined[0].source not in seen:
+            candidates.append(recombined)
+
+    archive = state.archive
+    best_before = arc.best(archive).score
+    n_valid = 0
+    if candidates:
+        results = _fit([c[0] for c in candidates], state.problem, fit_key, state.config.fit)
+        for (skeleton, island), result in zip(candidates, results, strict=True):
+            if result.error is not None or not np.isfinite(result.score):
+                dropped[f"fit: {result.error or 'non-finite score'}"] += 1
+                continue
+            n_valid += 1
+            archive = arc.register(archive, _entry(skeleton, result, round_), island)
+    period = state.config.reset_period
+    if period and round_ % period == 0:
+        archive = arc.reset_weak_islands(archive, reset_key)
+    best = arc.best(archive).score
+    state = replace_state(
+        state, archive=archive, key=key, history=(*state.history, best), iteration=round_
+    )
+    state, joined, missing = _maybe_extend(state)
+    state = _maybe_stop(state)
+    report = RoundReport(
+        round=round_,
+        n_samples=len(samples),
+        n_valid=n_valid,
+        dropped=tuple(sorted(dropped.items())),
+        best_score=best,
+        improved=best > best_before,
+        joined=joined,
+        missing=missing,
+        done=state.done,
+        stop_reason=state.stop_reason,
+    )
+    return state, report
+
+
+def _reason(err: SkeletonError) -> str:
+    text = getattr(err, "reason", None) or str(err)
+    return text.split(":", 1)[0] if len(text) > 60 else text
+
+
+def replace_state(state: SearchState, **changes: object) -> SearchState:
+    """A copy of ``state`` with some fields replaced (the state itself never changes)."""
+    names = [f for f in state.__dataclass_fields__]
+    values = {n: getattr(state, n) for n in names}
+    values.update(changes)
+    return SearchState(**values)
+
+
+def _recombined(state: SearchState) -> tuple[Skeleton, int] | None:
+    """The best line of every equation, assembled into one candidate."""
+    entries = [e for isl in state.archive.islands for e in isl.entries]
+    if len(entries) < 2:
+        return None
+    n_out = len(state.contract.targets)
+    chosen = [min(entries, key=lambda e, j=j: e.losses[j]) for j in range(n_out)]
+    if len({e.source for e in chosen}) < 2:
+        return None
+    try:
+        lines = [ln.split_lines(e.source)[0][j] for j, e in enumerate(chosen)]
+        source = ln.assemble(
+            state.contract.function_name,
+            state.contract.arguments,
+            lines,
+            _output_names(state.contract),
+        )
+        skeleton = _compile(source, state.contract)
+    except (ValueError, SkeletonError):
+        return None
+    islands = [i for i, isl in enumerate(state.archive.islands) if chosen[0] in isl.entries]
+    return skeleton, (islands[0] if islands else 0)
+
+
+def _gains(state: SearchState) -> list[float]:
+    history = state.history[state.last_extension :]
+    return [b - a for a, b in itertools.pairwise(history)]
+
+
+def _maybe_extend(state: SearchState) -> tuple[SearchState, tuple[str, ...], tuple[str, ...]]:
+    cfg = state.config
+    gains = _gains(state)
+    best = state.history[-1]
+    if len(gains) < cfg.patience or max(gains[-cfg.patience :]) > cfg.epsilon or best > -cfg.gamma:
+        return state, (), ()
+    top = sorted((e for isl in state.archive.islands for e in isl.entries), key=lambda e: -e.score)
+    requested: list[str] = []
+    for entry in _distinct(top)[: cfg.top_k]:
+        for name in parse_variable_requests(entry.requests):
+            if name not in requested:
+                requested.append(name)
+    have = set(state.contract.arguments)
+    joined, missing = [], []
+    for name in requested:
+        if name in have:
+            continue
+        variable = state.problem.find(name)
+        if variable is not None and name in state.problem.variables:
+            joined.append(variable)
+        elif name not in state.missing:
+            missing.append(name)
+    contract = state.contract
+    if joined:
+        contract = replace(contract, library=(*contract.library, *joined))
+    state = replace_state(
+        state,
+        contract=contract,
+        joined=(*state.joined, *((v.name, state.iteration) for v in joined)),
+        missing=(*state.missing, *missing),
+        # a new variable restarts the stagnation window; without one, wait another R rounds
+        last_extension=len(state.history) - 1,
+    )
+    return state, tuple(v.name for v in joined), tuple(missing)
+
+
+def _distinct(entries: Sequence[arc.Entry]) -> list[arc.Entry]:
+    seen, out = set(), []
+    for e in entries:
+        if e.source not in seen:
+            seen.add(e.source)
+            out.append(e)
+    return out
+
+
+def _maybe_stop(state: SearchState) -> SearchState:
+    cfg = state.config
+    recent = state.history[-cfg.patience :]
+    if len(state.history) > cfg.patience and all(s > -cfg.gamma for s in recent):
+        return replace_state(
+            state,
+            done=True,
+            stop_reason=f"best score above -{cfg.gamma} for {cfg.patience} rounds",
+        )
+    if state.iteration >= cfg.max_rounds:
+        return replace_state(state, done=True, stop_reason=f"round limit ({cfg.max_rounds})")
+    return state
+
+
+# ----------------------------------------------------------------------------------------------
+# the result
+
+
+@dataclass(frozen=True)
+class Equations:
+    """A loop's result: the final skeleton, its fitted parameters and per-equation NMSE."""
+
+    contract: Contract
+    source: str
+    params: tuple[float, ...]
+    losses: tuple[float, ...]
+    score: float
+
+    def readable(self) -> dict[str, str]:
+        """Each target's equation with the fitted parameters written in."""
+        lines, mappings = ln.split_lines(self.source)
+        out = {}
+        for target, line, mapping in zip(self.contract.targets, lines, mappings, strict=True):
+            params = [self.params[i] for i in mapping]
+            lhs = f"d{target}/dt" if self.contract.loop == "DE" else target
+            out[lhs] = ln.substitute_params(line.expr, params)
+        return out
+
+    def skeleton(self) -> Skeleton:
+        return _compile(self.source, self.contract)
+
+
+def final_equations(state: SearchState, tolerance: float = 0.05, floor: float = 1e-4) -> Equations:
+    """The parsimonious result: for each equation, the shortest line within tolerance of the best.
+
+    Among all archived lines of equation j with NMSE <= min_j * (1 + tolerance) + floor, the one
+    with the fewest parameters (then the fewest nodes, then the lowest loss) is kept; the kept
+    lines are assembled into one skeleton and refitted. This guards the result against terms that
+    only fit the noise of the derivative estimates (they lower the training NMSE by less than the
+    tolerance).
+    """
+    entries = _distinct(e for isl in state.archive.islands for e in isl.entries)
+    n_out = len(state.contract.targets)
+    chosen: list[ln.Line] = []
+    for j in range(n_out):
+        best = min(e.losses[j] for e in entries)
+        bound = best * (1 + tolerance) + floor
+        options = []
+        for e in entries:
+            if e.losses[j] <= bound:
+                line = ln.split_lines(e.source)[0][j]
+                nodes = sum(1 for _ in ast.walk(line.expr))
+                options.append((line.n_params, nodes, e.losses[j], line))
+        options.sort(key=lambda o: o[:3])
+        chosen.append(options[0][3])
+    source = ln.assemble(
+        state.contract.function_name,
+        state.contract.arguments,
+        chosen,
+        _output_names(state.contract),
+    )
+    skeleton = _compile(source, state.contract)
+    (result,) = _fit([skeleton], state.problem, jax.random.fold_in(state.key, 7), state.config.fit)
+    if result.error is not None:  # fall back to the best archived candidate as it stands
+        top = arc.best(state.archive)
+        return Equations(state.contract, top.source, top.params, top.losses, top.score)
+    return Equations(
+        contract=state.contract,
+        source=skeleton.source,
+        params=tuple(float(x) for x in result.params),
+        losses=tuple(float(x) for x in result.losses),
+        score=float(result.score),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# persistence: the state is written atomically after each round
+
+
+def _variable_dict(v: Variable) -> dict[str, str]:
+    return {"name": v.name, "role": v.role, "unit": v.unit, "description": v.description}
+
+
+def state_to_dict(state: SearchState) -> dict[str, object]:
+    """Everything but the data (which the caller reloads), as JSON-ready values."""
+    c = state.contract
+    return {
+        "contract": {
+            "loop": c.loop,
+            "targets": list(c.targets),
+            "states": [_variable_dict(v) for v in c.states],
+            "library": [_variable_dict(v) for v in c.library],
+            "function_name": c.function_name,
+            "system": c.system,
+        },
+        "archive": arc.to_dict(state.archive),
+        "key": np.asarray(jax.random.key_data(state.key) if _is_typed(state.key) else state.key)
+        .astype(np.uint32)
+        .tolist(),
+        "history": list(state.history),
+        "joined": [list(j) for j in state.joined],
+        "missing": list(state.missing),
+        "iteration": state.iteration,
+        "last_extension": state.last_extension,
+        "done": state.done,
+        "stop_reason": state.stop_reason,
+    }
+
+
+def _is_typed(key: jax.Array) -> bool:
+    return jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+
+
+def state_from_dict(
+    data: Mapping[str, object], problem: Problem, config: SearchConfig
+) -> SearchState:
+    c = data["contract"]
+    assert isinstance(c, dict)
+    contract = Contract(
+        loop=c["loop"],
+        targets=tuple(c["targets"]),
+        states=tuple(Variable(**v) for v in c["states"]),
+        library=tuple(Variable(**v) for v in c["library"]),
+        function_name=c["function_name"],
+        system=c["system"],
+    )
+    return SearchState(
+        contract=contract,
+        archive=arc.from_dict(data["archive"]),
+        problem=problem,
+        key=jnp.asarray(np.asarray(data["key"], dtype=np.uint32)),
+        config=config,
+        history=tuple(float(x) for x in data["history"]),
+        joined=tuple((str(a), int(b)) for a, b in data["joined"]),
+        missing=tuple(data["missing"]),
+        iteration=int(data["iteration"]),
+        last_extension=int(data["last_extension"]),
+        done=bool(data["done"]),
+        stop_reason=str(data["stop_reason"]),
+    )
+
+
+def write_json_atomic(path: str | os.PathLike[str], data: object) -> None:
+    """Write JSON so that a reader sees the old file or the new one, never half of one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1, allow_nan=True)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
