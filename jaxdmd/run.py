@@ -1,0 +1,402 @@
+"""``python -m jaxdmd.run``: the command line.
+
+With no arguments it runs the built-in benchmark (the paper's protocol on the IEEE 39-bus system,
+generator at bus 31) with the offline proposer: the DE loop, then the AE loop, and writes the
+discovered model, the score trajectories and ``summary.json`` into the output folder (schema in
+``docs/run.md``). Subcommands: ``simulate`` (write a benchmark dataset), see ``--help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdmd import search
+from jaxdmd.data import Dataset
+from jaxdmd.discover import Discovery, ae_problem, de_problem, resume_or_init, run_loop
+from jaxdmd.search import Equations, RoundReport, SearchConfig, SearchState
+
+DEFAULT_OUT = "runs/latest"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m jaxdmd.run",
+        description=(
+            "Discover the dynamic model of a power-system component from measured data. "
+            "Without a subcommand: discovery (DE loop, then AE loop); without --data, on the "
+            "built-in IEEE 39-bus benchmark with the offline proposer."
+        ),
+    )
+    add_discover_arguments(parser)
+    sub = parser.add_subparsers(dest="command", metavar="{simulate}")
+    sim = sub.add_parser("simulate", help="simulate the IEEE 39-bus benchmark, write a dataset")
+    from jaxdmd.grid.cli import add_simulate_arguments
+
+    add_simulate_arguments(sim)
+    return parser
+
+
+def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("discovery")
+    g.add_argument("--out", default=None, help=f"output folder (default {DEFAULT_OUT})")
+    g.add_argument(
+        "--data",
+        nargs="+",
+        metavar="FILE",
+        help="training recordings (.npz, or .csv with a .json sidecar); default: the benchmark",
+    )
+    g.add_argument("--test-data", nargs="+", metavar="FILE", help="held-out recordings")
+    g.add_argument("--generator", type=int, default=31, help="benchmark generator bus (30-39)")
+    g.add_argument("--operating-points", type=int, default=4, help="benchmark training points")
+    g.add_argument("--noise", type=float, default=0.01, help="benchmark noise (share of range)")
+    g.add_argument("--rounds", type=int, default=15, help="round limit of each loop")
+    g.add_argument("--prompts", type=int, default=4, help="prompts per round")
+    g.add_argument("--samples", type=int, default=4, help="samples per prompt")
+    g.add_argument("--islands", type=int, default=10)
+    g.add_argument("--tau-c", type=float, default=0.2, help="cluster temperature")
+    g.add_argument("--tau-l", type=float, default=0.2, help="code-length temperature")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--skip-ae", action="store_true", help="run the DE loop only")
+    g.add_argument("--resume", metavar="DIR", help="continue the run saved in DIR")
+    try:
+        from jaxdmd.proposers.llm import add_llm_arguments
+    except ImportError:  # pragma: no cover - the LLM proposer is part of the package
+        return
+    add_llm_arguments(parser)
+
+
+# ----------------------------------------------------------------------------------------------
+# data
+
+
+def load_recordings(paths: Sequence[str]) -> list[Dataset]:
+    return [Dataset.load(p) for p in paths]
+
+
+def benchmark_recordings(args: argparse.Namespace) -> tuple[list[Dataset], list[Dataset]]:
+    """The paper's protocol for one generator: noisy bus-15 training, clean bus-28 test data."""
+    from jaxdmd.grid import paper_protocol
+
+    data = paper_protocol(
+        n_train=args.operating_points,
+        n_test=args.operating_points,
+        seed=args.seed,
+        noise=args.noise,
+        generators=(args.generator,),
+    )
+    return list(data.train[args.generator]), list(data.test[args.generator])
+
+
+# ----------------------------------------------------------------------------------------------
+# progress
+
+
+class Progress:
+    """One line per round on the terminal (rich), and the events kept for the summary."""
+
+    def __init__(self, quiet: bool = False):
+        from rich.console import Console
+
+        self.console = Console(stderr=True, quiet=quiet, highlight=False)
+        self.start = time.perf_counter()
+
+    def loop_started(self, name: str, state: SearchState) -> None:
+        lib = ", ".join(state.contract.arguments)
+        self.console.print(
+            f"[bold]{name} loop[/bold]: targets {', '.join(state.contract.targets)}; "
+            f"arguments {lib}; seed score {state.history[0]:.4g}"
+        )
+
+    def round(self, name: str, state: SearchState, report: RoundReport) -> None:
+        dropped = sum(n for _, n in report.dropped)
+        line = (
+            f"  {name} round {report.round:2d}  best {report.best_score:10.4g}  "
+            f"valid {report.n_valid:2d}/{report.n_samples:2d} (dropped {dropped})  "
+            f"{time.perf_counter() - self.start:6.1f}s"
+        )
+        if report.joined:
+            line += f"  [green]+ {', '.join(report.joined)}[/green]"
+        if report.missing:
+            line += f"  [yellow]not measured: {', '.join(report.missing)}[/yellow]"
+        if report.done:
+            line += f"  [bold]done: {report.stop_reason}[/bold]"
+        self.console.print(line)
+
+
+# ----------------------------------------------------------------------------------------------
+# outputs
+
+
+def r2(pred: np.ndarray, target: np.ndarray) -> float:
+    ss = float(np.sum((target - pred) ** 2))
+    return 1.0 - ss / float(np.sum((target - target.mean()) ** 2))
+
+
+def ae_test_r2(ae: Equations, test: Sequence[Dataset]) -> dict[str, float]:
+    """R^2 of each algebraic equation on held-out recordings (states and boundary measured)."""
+    import jax.numpy as jnp
+
+    from jaxdmd.data import stack_samples
+
+    skeleton = ae.skeleton()
+    data = stack_samples(test, test[0].names)
+    pred = np.asarray(
+        skeleton({k: jnp.asarray(v) for k, v in data.items()}, jnp.asarray(ae.params))
+    )
+    return {t: r2(pred[j], data[t]) for j, t in enumerate(ae.contract.targets)}
+
+
+def loop_summary(state: SearchState, eq: Equations, seconds: float) -> dict[str, object]:
+    return {
+        "rounds": state.iteration,
+        "stop_reason": state.stop_reason,
+        "best_score_history": list(state.history),
+        "library": [{"name": n, "joined_round": r} for n, r in state.joined],
+        "missing_measurements": list(state.missing),
+        "targets": list(eq.contract.targets),
+        "equations": eq.readable(),
+        "source": eq.source,
+        "params": list(eq.params),
+        "nmse": dict(zip(eq.contract.targets, eq.losses, strict=True)),
+        "score": eq.score,
+        "wall_time_s": seconds,
+    }
+
+
+def plot_scores(path: Path, loops: Sequence[tuple[str, SearchState]]) -> None:
+    """The paper's Fig. 3: best score per round of each loop, extensions marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(loops), figsize=(5.5 * len(loops), 3.6), squeeze=False)
+    for ax, (name, state) in zip(axes[0], loops, strict=True):
+        history = np.asarray(state.history)
+        ax.plot(np.arange(len(history)), -history, marker="o", lw=1.5)
+        ax.set_yscale("log")
+        ax.set_xlabel("round")
+        ax.set_ylabel("-s* (mean NMSE)")
+        ax.set_title(f"{name} loop")
+        ax.axhline(state.config.gamma, color="grey", ls=":", lw=1, label="gamma")
+        for var, rnd in state.joined:
+            if rnd > 0:
+                ax.axvline(rnd, color="green", ls="--", lw=0.8)
+                ax.annotate(
+                    var,
+                    (rnd, ax.get_ylim()[1]),
+                    rotation=90,
+                    va="top",
+                    ha="right",
+                    fontsize=8,
+                    color="green",
+                )
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_outputs(
+    out: Path,
+    discovery: Discovery,
+    summary: dict[str, object],
+) -> None:
+    (out / "model.py").write_text(discovery.module_source())
+    lines = ["# Discovered model", "", "## State equations (DE loop)", ""]
+    lines += [f"    {k} = {v}" for k, v in discovery.de.readable().items()]
+    if discovery.ae is not None:
+        lines += ["", "## Algebraic equations (AE loop)", ""]
+        lines += [f"    {k} = {v}" for k, v in discovery.ae.readable().items()]
+    (out / "equations.md").write_text("\n".join(lines) + "\n")
+    loops = [("DE", discovery.de_state)]
+    if discovery.ae_state is not None:
+        loops.append(("AE", discovery.ae_state))
+    plot_scores(out / "scores.png", loops)
+    search.write_json_atomic(out / "summary.json", summary)
+
+
+# ----------------------------------------------------------------------------------------------
+# discovery
+
+
+def _config(args: argparse.Namespace) -> SearchConfig:
+    return SearchConfig(
+        n_islands=args.islands,
+        prompts_per_round=args.prompts,
+        samples_per_prompt=args.samples,
+        tau_c=args.tau_c,
+        tau_l=args.tau_l,
+        max_rounds=args.rounds,
+    )
+
+
+_RUN_KEYS = (
+    "data",
+    "test_data",
+    "generator",
+    "operating_points",
+    "noise",
+    "rounds",
+    "prompts",
+    "samples",
+    "islands",
+    "tau_c",
+    "tau_l",
+    "seed",
+    "skip_ae",
+)
+
+
+def discover(args: argparse.Namespace) -> int:
+    if args.resume:
+        out = Path(args.resume)
+        saved = json.loads((out / "run.json").read_text())
+        for k in _RUN_KEYS:
+            setattr(args, k, saved[k])
+    else:
+        out = Path(args.out or DEFAULT_OUT)
+        out.mkdir(parents=True, exist_ok=True)
+        search.write_json_atomic(out / "run.json", {k: getattr(args, k) for k in _RUN_KEYS})
+    progress = Progress()
+    t0 = time.perf_counter()
+    if args.data:
+        train = load_recordings(args.data)
+        test = load_recordings(args.test_data) if args.test_data else []
+        source = {"data": args.data, "test_data": args.test_data or []}
+    else:
+        progress.console.print(
+            f"Simulating the benchmark: generator {args.generator}, "
+            f"{args.operating_points} operating points, bus-15 fault (train), bus-28 (test)..."
+        )
+        train, test = benchmark_recordings(args)
+        source = {"benchmark": "ieee39-psat-5.1", "generator": args.generator}
+    data_seconds = time.perf_counter() - t0
+
+    proposer = _proposer(args)
+    config = _config(args)
+    key = jax.random.key(args.seed)
+    de_key, ae_key = jax.random.split(key)
+
+    problem, contract = de_problem(train)
+    t1 = time.perf_counter()
+    state = resume_or_init(problem, contract, de_key, config, out / "de_state.json")
+    progress.loop_started("DE", state)
+    state = run_loop(
+        state,
+        proposer(problem),
+        on_round=lambda s, r: progress.round("DE", s, r),
+        checkpoint=out / "de_state.json",
+    )
+    de_seconds = time.perf_counter() - t1
+    de = search.final_equations(state)
+    de_state = state
+
+    ae = ae_state = None
+    ae_seconds = 0.0
+    if not args.skip_ae:
+        t2 = time.perf_counter()
+        ae_prob, ae_contract = ae_problem(train, de.contract)
+        ae_state = resume_or_init(ae_prob, ae_contract, ae_key, config, out / "ae_state.json")
+        progress.loop_started("AE", ae_state)
+        ae_state = run_loop(
+            ae_state,
+            proposer(ae_prob),
+            on_round=lambda s, r: progress.round("AE", s, r),
+            checkpoint=out / "ae_state.json",
+        )
+        ae_seconds = time.perf_counter() - t2
+        ae = search.final_equations(ae_state)
+
+    discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
+    summary: dict[str, object] = {
+        "source": source,
+        "proposer": getattr(proposer, "name", "offline"),
+        "settings": {k: getattr(args, k) for k in _RUN_KEYS},
+        "de": loop_summary(de_state, de, de_seconds),
+        "data_wall_time_s": data_seconds,
+    }
+    if ae is not None and ae_state is not None:
+        summary["ae"] = loop_summary(ae_state, ae, ae_seconds)
+        if test:
+            summary["ae"]["test_r2"] = ae_test_r2(ae, test)  # type: ignore[index]
+    stats = getattr(proposer, "stats", None)
+    if stats is not None:
+        summary["llm"] = stats()
+    summary["wall_time_s"] = time.perf_counter() - t0
+    write_outputs(out, discovery, summary)
+    progress.console.print(f"\n[bold]Discovered model[/bold] (written to {out}/):")
+    for k, v in de.readable().items():
+        progress.console.print(f"  {k} = {v}")
+    if ae is not None:
+        for k, v in ae.readable().items():
+            progress.console.print(f"  {k} = {v}")
+    return 0
+
+
+class _OfflineFactory:
+    """Makes the offline proposer for each loop's problem (it reads that loop's data)."""
+
+    name = "offline"
+
+    def __call__(self, problem: search.Problem):
+        from jaxdmd.proposers.offline import OfflineProposer
+
+        return OfflineProposer.for_problem(problem)
+
+
+class _FixedFactory:
+    def __init__(self, proposer: object, name: str):
+        self.proposer, self.name = proposer, name
+
+    def __call__(self, problem: search.Problem):
+        return self.proposer
+
+    def stats(self) -> dict[str, object]:
+        stats = getattr(self.proposer, "stats", None)
+        return stats.as_dict() if stats is not None else {}
+
+
+def _proposer(args: argparse.Namespace):
+    try:
+        from jaxdmd.proposers.llm import proposer_from_args
+    except ImportError:  # pragma: no cover
+        return _OfflineFactory()
+    proposer = proposer_from_args(args)
+    if proposer is None:
+        return _OfflineFactory()
+    return _FixedFactory(proposer, getattr(proposer, "name", "llm"))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import logging
+
+    from jaxdmd.proposers.llm import LLMError
+
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "simulate":
+            from jaxdmd.grid.cli import run_simulate
+
+            return run_simulate(args)
+        return discover(args)
+    except KeyboardInterrupt:
+        print("interrupted; continue with --resume", file=sys.stderr)
+        return 130
+    except (LLMError, ValueError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
