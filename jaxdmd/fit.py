@@ -1,0 +1,574 @@
+"""Batched fitting of candidate skeletons: all candidates of a round, all restarts, one compile.
+
+A round of the search produces a handful of candidate skeletons (``jaxdmd.skeleton.Skeleton``),
+each a pure JAX function ``fn(*variables, p) -> tuple of n_outputs arrays`` with a trainable
+parameter vector ``p``. :func:`fit_batch` fits every candidate, from several random starting
+points each, in ONE jitted XLA computation, and returns one :class:`FitResult` per candidate.
+
+Score
+-----
+For a candidate with predictions ``pred[k, n]`` of the targets ``target[k, n]`` (output ``k``,
+sample ``n``) and non-negative sample weights ``w[k, n]`` (default 1)::
+
+    losses[k] = NMSE_k = mean_n( w[k, n] * (pred[k, n] - target[k, n])**2 ) / var_n(target[k])
+    score     = -mean_k(losses[k])                     (-inf if the candidate was dropped)
+
+The variance is the plain (unweighted) variance of the target over all samples; a constant
+target (variance 0) is normalised by 1 instead. Weights are used as given: weights with mean 1
+keep NMSE on its usual scale (a model that predicts the mean scores about 1, a perfect one 0).
+Normalising by the variance makes scores comparable across equations and data sets. The losses
+are kept per output because the state equations are separable: the search keeps the best
+equation for each state.
+
+Algorithm (measured against the alternatives in ``benchmarks/fit_speed.py``; see docs/fit.md)
+-----------------------------------------------------------------------------------------------
+XLA compilation, not arithmetic, is the cost of fitting small models on a CPU. The fit is
+therefore a second-order method with a tiny compiled body:
+
+1. *Restarts.* Restart 0 starts from ``p = 1`` (the LLM-SR convention); restart ``i > 0`` from
+   ``p_j = s_j * 10**u_j`` with random sign ``s_j`` and ``u_j ~ U(-init_log10_range,
+   init_log10_range)``: magnitudes from 0.1 to 10 by default, spread evenly in log scale. The
+   draws of a candidate depend only on the key and the candidate's source text, so a candidate
+   gets the same fit whatever else is in the batch.
+2. *Optional Adam* (``adam_steps > 0``, off by default): the paper's Adam with a cosine-annealed
+   learning rate (optax) on the summed NMSE. Measured: it costs compile and run time and does not
+   improve on step 3, whose damping is scale invariant (coefficients range from 0.01 to 377).
+3. *Levenberg-Marquardt polish*, written here in a few lines of JAX: Jacobian by forward mode
+   (``jvp`` vmapped over the parameter basis), normal equations ``(J^T J + lambda D) dp = -J^T r``
+   with Marquardt scaling ``D = diag(J^T J)``, one batched Cholesky solve for all candidates and
+   restarts (parameters padded to the largest candidate), inside a ``lax.while_loop`` that stops
+   when every fit has converged. For a skeleton linear in ``p`` the first step is the exact
+   least-squares solution. The equations are separable, so LM runs per *output component*: the
+   outputs are grouped by shared parameters (from the Jacobian's sparsity, found at run time),
+   and every group has its own damping, acceptance and convergence test, as if each equation were
+   fitted alone. An equation that is hard to fit does not slow the others down.
+4. *Per-equation restart selection* (on the host, from the returned arrays). For each group of
+   outputs the best restart is kept and the groups' parameters are combined; the losses of a
+   group depend only on its own parameters, so the combined losses are exact. Eight restarts of
+   a five-equation candidate thus act as eight restarts per equation, not eight joint draws.
+
+All candidates are traced into one function (a Python loop over candidates inside ``jit``,
+``vmap`` over restarts), so one XLA compile serves the round.
+
+Failures never break a batch: each candidate is first *traced* on its own (``jax.eval_shape`` of
+its residual and Jacobian; no XLA compile), and a candidate that fails to trace, reads an unknown
+variable, or returns the wrong number or shape of outputs is dropped with the reason. Inside the
+fit non-finite values are masked (a non-finite trial step is rejected like a step that increases
+the loss); a candidate whose every restart stays non-finite, or whose NMSE exceeds ``max_nmse``,
+is returned with ``score = -inf`` and the reason in ``error``. If the fused compile itself fails,
+the candidates are fitted one by one so that only the culprit is lost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax import lax
+
+__all__ = ["FitConfig", "FitResult", "fit_batch", "nmse"]
+
+Array = jax.Array
+
+
+class SkeletonLike(Protocol):
+    """What :func:`fit_batch` needs of a ``jaxdmd.skeleton.Skeleton``."""
+
+    source: str
+    name: str
+    arguments: tuple[str, ...]
+    n_params: int
+    n_outputs: int
+    fn: Callable[..., Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """Settings of :func:`fit_batch`.
+
+    Attributes:
+        restarts: random starting points per candidate (restart 0 starts from ``p = 1``).
+        adam_steps: Adam steps before the LM polish; 0 (the default) skips Adam.
+        learning_rate: Adam's peak learning rate (cosine-annealed to 0 over ``adam_steps``).
+        polish_steps: maximum Levenberg-Marquardt iterations (the loop stops earlier when every
+            fit has converged).
+        init_log10_range: restarts draw ``|p_j| = 10**U(-r, r)`` with a random sign.
+        first_restart_ones: start restart 0 from ``p = 1``.
+        damping: initial LM damping ``lambda`` (relative to ``diag(J^T J)``).
+        damping_up: factor on ``lambda`` after a rejected step.
+        damping_down: factor on ``lambda`` after an accepted step.
+        max_damping: a fit whose ``lambda`` exceeds this is considered converged (stuck).
+        ftol: converged when an accepted step lowers the group's loss by less than this fraction.
+        max_nmse: a candidate whose mean NMSE exceeds this is dropped as diverged.
+        combine_restarts: choose the best restart per group of separable outputs (else the best
+            restart of the candidate as a whole).
+        compiler_options: XLA options for the fused compile, as ``(name, value)`` pairs. The
+            default turns XLA:CPU's new fusion emitters off, which roughly halves the compile
+            time of these many small fusions at equal run time (measured, docs/fit.md).
+    """
+
+    restarts: int = 8
+    adam_steps: int = 0
+    learning_rate: float = 1e-2
+    polish_steps: int = 50
+    init_log10_range: float = 1.0
+    first_restart_ones: bool = True
+    damping: float = 1e-3
+    damping_up: float = 10.0
+    damping_down: float = 0.1
+    max_damping: float = 1e16
+    ftol: float = 1e-8
+    max_nmse: float = 1e6
+    combine_restarts: bool = True
+    compiler_options: tuple[tuple[str, Any], ...] = (("xla_cpu_use_fusion_emitters", False),)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """The fit of one candidate.
+
+    Attributes:
+        params: the best parameters, ``[n_params]`` (per output group when outputs are separable).
+        losses: per-output NMSE, ``[n_outputs]`` (see the module docstring for the definition).
+        score: ``-mean(losses)``; ``-inf`` if the candidate was dropped.
+        error: why the candidate was dropped (trace failure, non-finite, diverged), else None.
+        restart_losses: per-restart, per-output NMSE after the polish, ``[restarts, n_outputs]``
+            (empty if the candidate was dropped before fitting).
+    """
+
+    params: np.ndarray
+    losses: np.ndarray
+    score: float
+    error: str | None = None
+    restart_losses: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+
+
+def nmse(pred: Any, target: Any, weights: Any | None = None) -> np.ndarray:
+    """Per-output NMSE ``mean(w * (pred - target)**2) / var(target)`` (NumPy, for reference)."""
+    pred = np.atleast_2d(np.asarray(pred, dtype=np.float64))
+    target = np.atleast_2d(np.asarray(target, dtype=np.float64))
+    w = np.ones_like(target) if weights is None else np.broadcast_to(weights, target.shape)
+    return np.mean(w * (pred - target) ** 2, axis=1) / _variance(target)
+
+
+def _variance(target: np.ndarray) -> np.ndarray:
+    var = np.var(target, axis=1)
+    return np.where(var > 0, var, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# One candidate: residuals, losses, Jacobian products
+
+
+@dataclasses.dataclass(frozen=True)
+class _Model:
+    """A checked candidate: its function, arguments and (padded) parameter count."""
+
+    fn: Callable[..., Any]
+    arguments: tuple[str, ...]
+    n_params: int  # >= 1 (a parameter-free candidate gets one dummy parameter)
+    seed: int
+
+
+def _predict(model: _Model, data: Mapping[str, Array], p: Array, n_outputs: int) -> Array:
+    """``[n_outputs, N]`` predictions; scalar (constant) outputs are broadcast."""
+    n = next(iter(data.values())).shape[0]
+    out = model.fn(*(data[a] for a in model.arguments), p)
+    if not isinstance(out, tuple | list):
+        out = tuple(out) if getattr(out, "ndim", 0) == 2 else (out,)
+    if len(out) != n_outputs:
+        raise ValueError(f"returned {len(out)} outputs, expected {n_outputs}")
+    rows = []
+    for k, o in enumerate(out):
+        o = jnp.asarray(o, dtype=jnp.float64)
+        if o.size == 1:
+            o = jnp.reshape(o, ())
+        elif o.shape != (n,):
+            raise ValueError(f"output {k} has shape {o.shape}, expected () or ({n},)")
+        rows.append(jnp.broadcast_to(o, (n,)))
+    return jnp.stack(rows)
+
+
+def _residual(model, data, targets, scale, p):
+    """Scaled residuals ``sqrt(w / (N var)) * (pred - target)``: sum of squares = NMSE."""
+    return (_predict(model, data, p, targets.shape[0]) - targets) * scale
+
+
+def _losses(r: Array) -> Array:
+    """Per-output NMSE from scaled residuals ``[K, N]``; non-finite -> +inf."""
+    loss = jnp.sum(r * r, axis=-1)
+    return jnp.where(jnp.isfinite(loss), loss, jnp.inf)
+
+
+def _linearise(model, data, targets, scale, p):
+    """Losses ``[K]``, ``J^T J`` ``[P, P]``, ``J^T r`` ``[P]`` and dependence ``[K, P]`` at p."""
+    eye = jnp.eye(p.shape[0], dtype=p.dtype)
+
+    def f(q):
+        return _residual(model, data, targets, scale, q)
+
+    r, jac = jax.vmap(lambda v: jax.jvp(f, (p,), (v,)), out_axes=(None, -1))(eye)  # J [K, N, P]
+    jac = jnp.where(jnp.isfinite(jac), jac, 0.0)
+    rf = jnp.where(jnp.isfinite(r), r, 0.0)
+    jtj = jnp.einsum("knp,knq->pq", jac, jac)
+    jtr = jnp.einsum("knp,kn->p", jac, rf)
+    dep = jnp.sum(jnp.abs(jac), axis=1) > 0
+    return _losses(r), jtj, jtr, dep
+
+
+def _pad_vec(x: Array, size: int) -> Array:
+    return jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, size - x.shape[-1])])
+
+
+def _pad_mat(x: Array, size: int) -> Array:
+    extra = size - x.shape[-1]
+    return jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, extra), (0, extra)])
+
+
+def _closure(dep: Array) -> Array:
+    """Boolean ``[C, K, K]``: outputs k, l are coupled through (chains of) shared parameters."""
+    depf = dep.astype(jnp.float64)
+    a = jnp.einsum("ckp,clp->ckl", depf, depf) > 0
+    a = a | jnp.eye(a.shape[-1], dtype=bool)
+    for _ in range(max(1, int(np.ceil(np.log2(max(a.shape[-1], 2)))))):
+        af = a.astype(jnp.float64)
+        a = jnp.einsum("ckl,clm->ckm", af, af) > 0
+    return a
+
+
+def _group_sum(coupled: Array, loss: Array) -> Array:
+    """Per-output sum of the losses of its group: ``[C, R, K]`` (inf-safe)."""
+    return jnp.sum(jnp.where(coupled[:, None, :, :], loss[:, :, None, :], 0.0), axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------
+# The fused fit
+
+
+def _initial_params(model: _Model, key_data: np.ndarray, config: FitConfig) -> np.ndarray:
+    """``[restarts, n_params]`` starting points (see the module docstring), drawn on the host."""
+    rng = np.random.default_rng([*(int(x) for x in key_data.ravel()), model.seed])
+    shape = (config.restarts, model.n_params)
+    r = config.init_log10_range
+    p0 = np.where(rng.random(shape) < 0.5, -1.0, 1.0) * 10.0 ** rng.uniform(-r, r, shape)
+    if config.first_restart_ones:
+        p0[0] = 1.0
+    return p0
+
+
+def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
+    """The jitted fit of a batch: ``(data, targets, scale, key) -> arrays``."""
+    n_restarts, n_out = config.restarts, n_outputs
+    pmax = max(m.n_params for m in models)
+
+    def evaluate_all(data, targets, scale, p):  # p [C, R, Pmax]
+        outs = [
+            jax.vmap(lambda q, m=m: _linearise(m, data, targets, scale, q))(p[c, :, : m.n_params])
+            for c, m in enumerate(models)
+        ]
+        loss = jnp.stack([o[0] for o in outs])
+        jtj = jnp.stack([_pad_mat(o[1], pmax) for o in outs])
+        jtr = jnp.stack([_pad_vec(o[2], pmax) for o in outs])
+        dep = jnp.stack([jnp.any(_pad_vec(o[3], pmax), axis=0) for o in outs])  # [C, K, P]
+        return loss, jtj, jtr, dep
+
+    def adam(data, targets, scale, p):
+        schedule = optax.cosine_decay_schedule(config.learning_rate, config.adam_steps)
+        opt = optax.adam(schedule)
+
+        def total(m, q):
+            t = jnp.sum(_losses(_residual(m, data, targets, scale, q)))
+            return jnp.where(jnp.isfinite(t), t, 1e300)
+
+        ps = [p[c, :, : m.n_params] for c, m in enumerate(models)]
+        states = [jax.vmap(opt.init)(q) for q in ps]
+
+        def step(carry, _):
+            ps, states = carry
+            new_ps, new_states = [], []
+            for m, q, s in zip(models, ps, states, strict=True):
+                g = jax.vmap(jax.grad(functools.partial(total, m)))(q)
+                g = jnp.where(jnp.isfinite(g), g, 0.0)
+                upd, s = jax.vmap(opt.update)(g, s, q)
+                q_new = q + upd
+                new_ps.append(jnp.where(jnp.isfinite(q_new), q_new, q))
+                new_states.append(s)
+            return (new_ps, new_states), None
+
+        (ps, _), _ = lax.scan(step, (ps, states), None, length=config.adam_steps)
+        return jnp.stack([_pad_vec(q, pmax) for q in ps])
+
+    def fit(data, targets, scale, p):
+        if config.adam_steps > 0:
+            p = adam(data, targets, scale, p)
+        shape = (len(models), n_restarts, n_out)
+        eye = jnp.eye(pmax)
+
+        def cond(s):
+            return (s["it"] < config.polish_steps + 1) & ~jnp.all(s["done"])
+
+        def body(s):
+            dep = s["dep"]
+            active = ~s["done"]  # [C, R, K]
+            # parameter j of restart r moves if any active output depends on it
+            dep_r = dep[:, None, :, :]  # [C, 1, K, P]
+            move = jnp.any(dep_r & active[..., None], axis=2)  # [C, R, P]
+            lam_p = jnp.max(jnp.where(dep_r, s["lam"][..., None], 0.0), axis=2)  # [C, R, P]
+            d = jnp.diagonal(s["jtj"], axis1=-2, axis2=-1)
+            d = jnp.maximum(d, 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300)
+            mm = move[..., :, None] & move[..., None, :]
+            a = jnp.where(mm, s["jtj"] + (lam_p * d)[..., None] * eye, eye)
+            g = jnp.where(move, s["jtr"], 0.0)
+            dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), -g[..., None])
+            # the first pass evaluates the starting points themselves
+            p_try = jnp.where(move & (s["it"] > 0), s["p"] + dp[..., 0], s["p"])
+            loss_t, jtj_t, jtr_t, dep_t = evaluate_all(data, targets, scale, p_try)
+            dep_new = dep | dep_t
+            coupled = _closure(dep_new)
+            lg = _group_sum(coupled, s["loss"])
+            lg_t = _group_sum(coupled, loss_t)
+            first = s["it"] == 0
+            ok = (jnp.isfinite(lg_t) & (lg_t < lg) & active) | first  # [C, R, K]
+            acc_p = jnp.any(dep_new[:, None] & ok[..., None], axis=2) | first  # [C, R, P]
+            acc_pp = acc_p[..., :, None] & acc_p[..., None, :]
+            gain = (lg - lg_t) / jnp.where(lg > 0, lg, 1.0)
+            lam_new = jnp.where(ok, s["lam"] * config.damping_down, s["lam"] * config.damping_up)
+            lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
+            # a group is done when all of its outputs agree it is (damping is shared)
+            conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
+            conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
+            return {
+                "p": jnp.where(acc_p, p_try, s["p"]),
+                "loss": jnp.where(ok, loss_t, s["loss"]),
+                "jtj": jnp.where(acc_pp, jtj_t, s["jtj"]),
+                "jtr": jnp.where(acc_p, jtr_t, s["jtr"]),
+                "dep": dep_new,
+                "lam": lam_new,
+                "done": (s["done"] | conv) & ~first,
+                "it": s["it"] + 1,
+            }
+
+        init = {
+            "p": p,
+            "loss": jnp.full(shape, jnp.inf),
+            "jtj": jnp.broadcast_to(eye, (*shape[:2], pmax, pmax)),
+            "jtr": jnp.zeros((*shape[:2], pmax)),
+            "dep": jnp.zeros((len(models), n_out, pmax), dtype=bool),
+            "lam": jnp.full(shape, config.damping),
+            "done": jnp.zeros(shape, dtype=bool),
+            "it": jnp.zeros((), dtype=jnp.int32),
+        }
+        s = lax.while_loop(cond, body, init)
+        return s["p"], s["loss"], s["dep"], s["it"]
+
+    jitted = jax.jit(fit)
+    compiled: dict[Any, Callable] = {}
+
+    def call(*args: Any) -> Any:
+        sig = jax.tree.map(lambda x: (x.shape, x.dtype), args)
+        sig = (jax.tree.structure(args), tuple(jax.tree.leaves(sig)))
+        if sig not in compiled:
+            lowered = jitted.lower(*args)
+            options = dict(config.compiler_options)
+            try:
+                compiled[sig] = lowered.compile(options or None)
+            except Exception:
+                if not options:
+                    raise
+                compiled[sig] = lowered.compile()  # an option this XLA does not know
+        return compiled[sig](*args)
+
+    return call
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
+    return _build(models, n_outputs, config)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checking candidates and the public entry point
+
+
+def _check(
+    skeleton: SkeletonLike,
+    data: Mapping[str, Array],
+    targets: Array,
+    scale: Array,
+) -> tuple[_Model | None, str | None]:
+    """Trace a candidate alone (no XLA compile); return the model or the reason to drop it."""
+    n_outputs = targets.shape[0]
+    try:
+        arguments = tuple(skeleton.arguments)
+        missing = [a for a in arguments if a not in data]
+        if missing:
+            return None, f"unknown variable(s): {', '.join(missing)}"
+        if int(skeleton.n_outputs) != n_outputs:
+            return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+        n_params = max(1, int(skeleton.n_params))
+        seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
+        model = _Model(fn=skeleton.fn, arguments=arguments, n_params=n_params, seed=seed)
+        p = jax.ShapeDtypeStruct((n_params,), jnp.float64)
+        jax.eval_shape(lambda q: _linearise(model, data, targets, scale, q), p)
+    except Exception as exc:
+        return None, f"failed to trace: {type(exc).__name__}: {exc}"
+    return model, None
+
+
+def _dropped(skeleton: SkeletonLike, n_outputs: int, error: str) -> FitResult:
+    return FitResult(
+        params=np.full(max(0, int(getattr(skeleton, "n_params", 0))), np.nan),
+        losses=np.full(n_outputs, np.inf),
+        score=-np.inf,
+        error=error,
+    )
+
+
+def _select(
+    p: np.ndarray, loss: np.ndarray, dep: np.ndarray, combine: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Best parameters and losses from ``p [R, P]``, ``loss [R, K]``, dependence ``dep [K, P]``.
+
+    With ``combine``, outputs are grouped by shared parameters (connected components of ``dep``)
+    and each group takes its best restart; otherwise the best restart overall is taken.
+    """
+    loss = np.where(np.isnan(loss), np.inf, loss)
+    best = int(np.argmin(np.sum(loss, axis=1)))
+    if not combine:
+        return p[best].copy(), loss[best].copy()
+    n_out = loss.shape[1]
+    group = list(range(n_out))  # union-find over outputs sharing a parameter
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            k = group[k]
+        return k
+
+    for j in range(dep.shape[1]):
+        users = np.flatnonzero(dep[:, j])
+        for k in users[1:]:
+            group[root(int(k))] = root(int(users[0]))
+    roots = np.array([root(k) for k in range(n_out)])
+    params, losses = p[best].copy(), loss[best].copy()
+    for g in np.unique(roots):
+        outs = roots == g
+        r = int(np.argmin(np.sum(loss[:, outs], axis=1)))
+        losses[outs] = loss[r, outs]
+        cols = np.any(dep[outs], axis=0)
+        params[cols] = p[r, cols]
+    return params, losses
+
+
+def _result(
+    n_params: int, params: np.ndarray, losses: np.ndarray, restarts: np.ndarray, config: FitConfig
+) -> FitResult:
+    params = params[:n_params]
+    error = None
+    if not np.all(np.isfinite(losses)):
+        bad = [int(k) for k in np.flatnonzero(~np.isfinite(losses))]
+        error = f"non-finite loss at every restart (outputs {bad})"
+    elif not np.all(np.isfinite(params)):
+        error = "non-finite parameters"
+    elif float(np.mean(losses)) > config.max_nmse:
+        error = f"diverged: mean NMSE {float(np.mean(losses)):.3g} > max_nmse {config.max_nmse:g}"
+    score = -np.inf if error else -float(np.mean(losses))
+    return FitResult(
+        params=params, losses=losses, score=score, error=error, restart_losses=restarts
+    )
+
+
+def fit_batch(
+    skeletons: Sequence[SkeletonLike],
+    variables: Mapping[str, Any],
+    targets: Any,
+    *,
+    key: Array,
+    config: FitConfig = FitConfig(),
+    weights: Any | None = None,
+) -> list[FitResult]:
+    """Fit every candidate (with ``config.restarts`` restarts each) in one compiled call.
+
+    Args:
+        skeletons: the candidates; all must have ``n_outputs == targets.shape[0]``.
+        variables: variable name -> samples ``[N]`` (several recordings may be concatenated).
+        targets: ``[n_outputs, N]`` (DE loop: state-derivative estimates; AE loop: measured
+            algebraic variables). A ``[N]`` array is taken as one output.
+        key: a JAX PRNG key; the result is deterministic given the key.
+        config: see :class:`FitConfig`.
+        weights: optional non-negative sample weights, broadcastable to ``[n_outputs, N]``.
+
+    Returns:
+        One :class:`FitResult` per candidate, in order. Dropped candidates have
+        ``score == -inf`` and the reason in ``error``.
+
+    Raises:
+        ValueError: if the data themselves are unusable (shapes, non-finite targets, negative
+            weights). A bad *candidate* never raises.
+    """
+    targets_np = np.asarray(targets, dtype=np.float64)
+    if targets_np.ndim == 1:
+        targets_np = targets_np[None, :]
+    if targets_np.ndim != 2:
+        raise ValueError(f"targets must be [n_outputs, N], got shape {targets_np.shape}")
+    n_outputs, n = targets_np.shape
+    if not np.all(np.isfinite(targets_np)):
+        raise ValueError("targets contain non-finite values")
+    data_np = {str(k): np.asarray(v, dtype=np.float64) for k, v in variables.items()}
+    for name, v in data_np.items():
+        if v.shape != (n,):
+            raise ValueError(f"variable {name!r} has shape {v.shape}, expected ({n},)")
+    w = np.ones_like(targets_np) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = np.broadcast_to(w, targets_np.shape)
+    if np.any(~np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("weights must be finite and non-negative")
+    if config.restarts < 1:
+        raise ValueError("config.restarts must be >= 1")
+
+    scale_np = np.sqrt(w / (n * _variance(targets_np)[:, None]))
+    data = {k: jnp.asarray(v) for k, v in data_np.items()}
+    tgt, scale = jnp.asarray(targets_np), jnp.asarray(scale_np)
+
+    results: list[FitResult | None] = [None] * len(skeletons)
+    models: dict[int, _Model] = {}
+    for i, sk in enumerate(skeletons):
+        model, error = _check(sk, data, tgt, scale)
+        if model is None:
+            results[i] = _dropped(sk, n_outputs, error or "unknown error")
+        else:
+            models[i] = model
+
+    def run(indices: list[int]) -> None:
+        batch = tuple(models[i] for i in indices)
+        used = sorted({a for m in batch for a in m.arguments})
+        fn = _cached_build(batch, n_outputs, config)
+        pmax = max(m.n_params for m in batch)
+        p0 = np.zeros((len(batch), config.restarts, pmax))
+        for j, m in enumerate(batch):
+            p0[j, :, : m.n_params] = _initial_params(m, key_data, config)
+        out = fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0))
+        p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
+        for j, i in enumerate(indices):
+            params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
+            results[i] = _result(int(skeletons[i].n_params), params, losses, loss[j], config)
+
+    key_data = np.asarray(jax.random.key_data(key))
+    if models:
+        try:
+            run(list(models))
+        except Exception:
+            # a candidate broke the fused compile or run: fit one by one to isolate it
+            for i in models:
+                try:
+                    run([i])
+                except Exception as exc:
+                    results[i] = _dropped(
+                        skeletons[i], n_outputs, f"fit failed: {type(exc).__name__}: {exc}"
+                    )
+    return [r for r in results if r is not None]

@@ -1,0 +1,166 @@
+"""Tests of jaxdmd.fit: parameter recovery, NMSE, dropped candidates, determinism."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdmd  # noqa: F401  (float64)
+from jaxdmd.fit import FitConfig, FitResult, fit_batch, nmse
+from jaxdmd.skeleton import compile_skeleton
+
+VARIABLES = ("delta", "omega", "x", "u")
+N = 600
+TRUE_LIN = np.array([377.0, 0.016, -0.03, 2.5])  # d0 = p0 (omega - 1); d1 = p1 u + p2 x + p3
+TRUE_NL = np.array([1.8, 0.35, 0.2, -4.0])  # d0 = p0 sin(delta - p1) + p2; d1 = p3 x
+SIGMA = (0.05, 0.002)
+
+LINEAR = """def equation(delta, omega, x, u, p):
+    return p[0] * (omega - 1), p[1] * u + p[2] * x + p[3]"""
+NONLINEAR = """def equation(delta, x, p):
+    return p[0] * np.sin(delta - p[1]) + p[2], p[3] * x"""
+NAN = """def equation(x, p):
+    return p[0] * np.sqrt(-1 - x ** 2), p[1] * x"""
+UNKNOWN = """def equation(x, p):
+    return p[0] * x, p[1] * x"""
+
+
+def _data(seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 6, N)
+    return {
+        "delta": 0.9 + 0.6 * np.sin(1.3 * t) + 0.05 * rng.standard_normal(N),
+        "omega": 1 + 2e-3 * np.sin(2.1 * t + 0.4),
+        "x": np.cos(0.7 * t) + 0.3 * rng.standard_normal(N),
+        "u": 6 + 0.5 * np.sin(0.4 * t),
+    }
+
+
+def _skeleton(text: str, name: str):
+    sk = compile_skeleton(text, variables=VARIABLES, n_outputs=2)
+    return dataclasses.replace(sk, name=name)
+
+
+@pytest.fixture(scope="module")
+def linear_problem():
+    data = _data(1)
+    rng = np.random.default_rng(2)
+    clean = np.stack(
+        [
+            TRUE_LIN[0] * (data["omega"] - 1),
+            TRUE_LIN[1] * data["u"] + TRUE_LIN[2] * data["x"] + TRUE_LIN[3],
+        ]
+    )
+    targets = clean + np.array(SIGMA)[:, None] * rng.standard_normal(clean.shape)
+    return data, targets
+
+
+@pytest.fixture(scope="module")
+def batch():
+    """One mixed batch: linear, nonlinear, NaN, untraceable, unknown variable (one compile)."""
+    data = _data(3)
+    rng = np.random.default_rng(4)
+    clean = np.stack(
+        [TRUE_NL[0] * np.sin(data["delta"] - TRUE_NL[1]) + TRUE_NL[2], TRUE_NL[3] * data["x"]]
+    )
+    targets = clean + 0.01 * rng.standard_normal(clean.shape)
+    lin = _skeleton(LINEAR, "linear")
+    broken = dataclasses.replace(lin, name="broken", fn=_raises)
+    unknown = dataclasses.replace(lin, name="unknown", arguments=("x", "nope"))
+    cands = [_skeleton(NONLINEAR, "nonlinear"), _skeleton(NAN, "nan"), broken, unknown, lin]
+    results = fit_batch(cands, data, targets, key=jax.random.key(0))
+    return data, targets, cands, results
+
+
+def _raises(*args):
+    raise TypeError("this candidate cannot be traced")
+
+
+def test_linear_matches_least_squares(linear_problem) -> None:
+    data, targets = linear_problem
+    (res,) = fit_batch([_skeleton(LINEAR, "lin")], data, targets, key=jax.random.key(1))
+    assert res.error is None
+    # exact least squares per equation, and its standard errors
+    a0 = (data["omega"] - 1)[:, None]
+    a1 = np.stack([data["u"], data["x"], np.ones(N)], axis=1)
+    for cols, a, k in (([0], a0, 0), ([1, 2, 3], a1, 1)):
+        coef = np.linalg.lstsq(a, targets[k], rcond=None)[0]
+        np.testing.assert_allclose(res.params[cols], coef, rtol=1e-6, atol=1e-9)
+        cov = SIGMA[k] ** 2 * np.linalg.inv(a.T @ a)
+        z = (res.params[cols] - TRUE_LIN[cols]) / np.sqrt(np.diag(cov))
+        assert np.all(np.abs(z) < 5), z
+    # near the noise floor: NMSE = sigma^2 / var
+    floor = np.array(SIGMA) ** 2 / np.var(targets, axis=1)
+    np.testing.assert_allclose(res.losses, floor, rtol=0.25)
+    assert res.score == pytest.approx(-np.mean(res.losses))
+
+
+def test_nonlinear_recovered_with_restarts(batch) -> None:
+    _, _, _, results = batch
+    res = results[0]
+    assert res.error is None
+    angle = (res.params[1] - TRUE_NL[1] + np.pi) % (2 * np.pi) - np.pi
+    if res.params[0] < 0:  # p0 sin(a - p1) = -p0 sin(a - p1 - pi)
+        angle = (angle + 2 * np.pi) % (2 * np.pi) - np.pi
+    assert abs(abs(res.params[0]) - TRUE_NL[0]) < 0.01
+    assert abs(angle) < 0.01 or abs(abs(angle) - np.pi) < 0.01
+    np.testing.assert_allclose(res.params[[2, 3]], TRUE_NL[[2, 3]], atol=0.01)
+    assert res.restart_losses.shape == (FitConfig().restarts, 2)
+
+
+def test_losses_are_per_output_nmse(batch) -> None:
+    data, targets, cands, results = batch
+    for sk, res in zip(cands, results, strict=True):
+        if res.error is None:
+            pred = np.asarray(sk(data, res.params))
+            np.testing.assert_allclose(res.losses, nmse(pred, targets), rtol=1e-8)
+            assert res.losses.shape == (2,)
+
+
+def test_bad_candidates_dropped_batch_survives(batch) -> None:
+    _, _, _, results = batch
+    nonlinear, nan, broken, unknown, lin = results
+    assert nan.score == -np.inf and "non-finite" in nan.error
+    assert broken.score == -np.inf and "failed to trace" in broken.error
+    assert "cannot be traced" in broken.error
+    assert unknown.score == -np.inf and "nope" in unknown.error
+    for good in (nonlinear, lin):
+        assert good.error is None and np.isfinite(good.score)
+        assert np.all(np.isfinite(good.params))
+    assert all(isinstance(r, FitResult) for r in results)
+
+
+def test_deterministic_given_key(batch) -> None:
+    data, targets, cands, results = batch
+    again = fit_batch(cands, data, targets, key=jax.random.key(0))
+    for a, b in zip(results, again, strict=True):
+        np.testing.assert_array_equal(a.params, b.params)
+        np.testing.assert_array_equal(a.losses, b.losses)
+        assert a.error == b.error
+
+
+def test_weights_enter_the_nmse(linear_problem) -> None:
+    data, targets = linear_problem
+    w = np.ones(N)
+    w[: N // 2] = 0.0
+    (res,) = fit_batch(
+        [_skeleton(LINEAR, "lin")], data, targets, key=jax.random.key(1), weights=w,
+        config=FitConfig(restarts=2),
+    )  # fmt: skip
+    sk = _skeleton(LINEAR, "lin")
+    pred = np.asarray(sk(data, res.params))
+    np.testing.assert_allclose(res.losses, nmse(pred, targets, w), rtol=1e-8)
+    a1 = np.stack([data["u"], data["x"], np.ones(N)], axis=1)[N // 2 :]
+    coef = np.linalg.lstsq(a1, targets[1, N // 2 :], rcond=None)[0]
+    np.testing.assert_allclose(res.params[1:], coef, rtol=1e-6)
+
+
+def test_bad_data_raises() -> None:
+    data = _data()
+    with pytest.raises(ValueError, match="non-finite"):
+        fit_batch([], data, np.full((2, N), np.nan), key=jax.random.key(0))
+    with pytest.raises(ValueError, match="shape"):
+        fit_batch([], {"x": np.ones(3)}, np.ones((2, N)), key=jax.random.key(0))
