@@ -8,20 +8,13 @@ jaxdmd works in float64 throughout: power-system states differ from their operat
 1e-4 pu and less, which float32 cannot resolve. Importing jaxdmd therefore enables JAX's x64 mode.
 """
 
-import os
+import jax
 
-# XLA:CPU's multi-threaded Eigen pool deadlocks here (0 % CPU, forever) on some batched solves
-# inside diffrax while-loops on 2-core machines; reproduced with paper_protocol. One intra-op
-# thread avoids it at a small cost. Set before JAX creates its CPU backend; a user's own
-# XLA_FLAGS are kept and extended.
-_XLA_FLAGS = ("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1")
-_flags = os.environ.get("XLA_FLAGS", "")
-os.environ["XLA_FLAGS"] = " ".join(
-    [_flags, *(f for f in _XLA_FLAGS if f.split("=")[0] not in _flags)]
-).strip()
-
-import jax  # noqa: E402
-
+# XLA:CPU with asynchronous dispatch loses a completion wakeup now and then on these 2-core
+# machines: an execution (seen with the vmapped diffrax simulation after several single runs)
+# waits forever at 0 % CPU. Synchronous dispatch avoids it at no measured cost for jaxdmd's
+# workloads, whose host code waits for every result anyway.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
