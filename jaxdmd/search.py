@@ -465,8 +465,13 @@ def final_equations(state: SearchState, tolerance: float = 0.05, floor: float = 
         chosen,
         _output_names(state.contract),
     )
-    skeleton = _compile(source, state.contract)
-    (result,) = _fit([skeleton], state.problem, jax.random.fold_in(state.key, 7), state.config.fit)
+    try:
+        skeleton = _compile(source, state.contract)
+        (result,) = _fit(
+            [skeleton], state.problem, jax.random.fold_in(state.key, 7), state.config.fit
+        )
+    except SkeletonError as err:
+        result = FitResult(np.zeros(0), np.zeros(0), -np.inf, str(err))
     if result.error is not None:  # fall back to the best archived candidate as it stands
         top = arc.best(state.archive)
         return Equations(state.contract, top.source, top.params, top.losses, top.score)

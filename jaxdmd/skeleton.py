@@ -89,7 +89,7 @@ MAX_ANSWER_CHARS = 100_000  # a whole model answer
 MAX_SOURCE_CHARS = 4_000  # the extracted function
 MAX_NODES = 600  # syntax-tree nodes of the function, without Load/Store markers
 MAX_DEPTH = 50  # nesting of the syntax tree, counted from the module
-MAX_PARAMS = 32  # p[0] ... p[31]
+MAX_PARAMS = 64  # p[0] ... p[63]: five state equations of up to a dozen terms each
 MAX_LITERAL = 1e6  # largest magnitude of a numeric literal
 MAX_EXPONENT = 8  # largest magnitude of a constant exponent
 

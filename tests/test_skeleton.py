@@ -365,7 +365,7 @@ def test_no_function(text):
         ("    return p[0] * omega, omega\n", 2, "returns 2 values but the task needs 1"),
         ("    return p * omega\n", 2, "uses p on its own"),
         ("    return p[-1]\n", 2, "integer literal index"),
-        (f"    return p[{MAX_PARAMS}]\n", 2, "p[0] ... p[31]"),
+        (f"    return p[{MAX_PARAMS}]\n", 2, f"p[0] ... p[{MAX_PARAMS - 1}]"),
         ("    return p[0.5]\n", 2, "integer literal index"),
         ("    return omega ** omega\n", 2, "exponents must be numbers"),
         ("    return omega ** 9\n", 2, "between -8 and 8"),

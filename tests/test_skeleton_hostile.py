@@ -34,6 +34,7 @@ from hypothesis import strategies as st
 import jaxdmd  # noqa: F401  (enables float64)
 from jaxdmd.skeleton import (
     MAX_DEPTH,
+    MAX_PARAMS,
     MAX_SOURCE_CHARS,
     Skeleton,
     SkeletonError,
@@ -396,7 +397,7 @@ def test_fuzz_mutated_valid_skeletons(base, edits):
         data = {name: jnp.linspace(0.1, 1.0, 4) for name in VARIABLES}
         # a mutation may ask for a variable that is not in the data
         with Watch() as watch, contextlib.suppress(ValueError):
-            result(data, jnp.ones(32))
+            result(data, jnp.ones(MAX_PARAMS))
         assert watch.events == []
 
 

@@ -267,8 +267,8 @@ class OfflineConfig:
     grow_terms: int = 4  # terms added by one greedy growth
     min_gain: float = 1e-4  # a term must lower the equation's NMSE by this much to be added
     prune_effect: float = 2e-3  # prune a term whose fitted effect is below this (x target std)
-    max_terms: int = 12  # terms per equation
-    max_requests: int = 3  # variables requested per answer
+    max_terms: int = 8  # terms per equation
+    max_requests: int = 2  # variables requested per answer (each the best for its equation)
     min_request_gain: float = 1e-3  # NMSE drop a requested variable's best term must bring
 
 
@@ -502,18 +502,19 @@ class OfflineProposer:
             return []
         base = (*contract.states, *contract.library)
         base_pool = set(term_pool(base, self.data))
-        scores = []
+        # for every equation, the outside variable whose best term explains most of its error
+        per_equation: dict[int, tuple[float, Variable]] = {}
         for v in outside:
             pool = [t for t in term_pool((*base, v), self.data) if t not in base_pool]
-            best, where = 0.0, 0
             for j, eq in enumerate(equations):
                 terms = list(eq.terms) if eq.opaque is None else ["1"]
                 _, _, loss = self.solve(j, terms)
                 share = float(self.explained(j, terms, pool).max(initial=0.0)) * min(loss, 1.0)
-                if share > best:
-                    best, where = share, j
-            scores.append((best, v, where))
-        scores.sort(key=lambda s: -s[0])
+                if share > per_equation.get(j, (0.0, v))[0]:
+                    per_equation[j] = (share, v)
+        scores = sorted(((s, v, j) for j, (s, v) in per_equation.items()), key=lambda x: -x[0])
+        seen: set[str] = set()
+        scores = [x for x in scores if not (x[1].name in seen or seen.add(x[1].name))]
         out = []
         for share, v, j in scores[: self.config.max_requests]:
             if share < self.config.min_request_gain:
