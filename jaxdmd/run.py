@@ -196,18 +196,23 @@ def plot_scores(path: Path, loops: Sequence[tuple[str, SearchState]]) -> None:
         ax.set_ylabel("-s* (mean NMSE)")
         ax.set_title(f"{name} loop")
         ax.axhline(state.config.gamma, color="grey", ls=":", lw=1, label="gamma")
+        joined: dict[int, list[str]] = {}
         for var, rnd in state.joined:
             if rnd > 0:
-                ax.axvline(rnd, color="green", ls="--", lw=0.8)
-                ax.annotate(
-                    var,
-                    (rnd, ax.get_ylim()[1]),
-                    rotation=90,
-                    va="top",
-                    ha="right",
-                    fontsize=8,
-                    color="green",
-                )
+                joined.setdefault(rnd, []).append(var)
+        for rnd, names in joined.items():
+            ax.axvline(rnd, color="green", ls="--", lw=0.8)
+            ax.text(
+                rnd + 0.15,
+                0.97,
+                "+ " + ", ".join(names),
+                transform=ax.get_xaxis_transform(),
+                rotation=90,
+                va="top",
+                ha="left",
+                fontsize=8,
+                color="green",
+            )
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

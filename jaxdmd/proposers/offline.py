@@ -266,6 +266,10 @@ class OfflineConfig:
     rank_temperature: float = 0.1  # softmax temperature over normalised explained fractions
     grow_terms: int = 4  # terms added by one greedy growth
     min_gain: float = 1e-4  # a term must lower the equation's NMSE by this much to be added
+    # ... and by this share of it: with smoothed derivative targets the samples are strongly
+    # correlated (a window holds ~25 of them), so a BIC-like penalty log(n_eff) / n_eff with
+    # n_eff ~ n / 25 is a few per cent; terms below it mostly fit the noise of the estimates
+    min_relative_gain: float = 0.02
     prune_effect: float = 2e-3  # prune a term whose fitted effect is below this (x target std)
     max_terms: int = 8  # terms per equation
     max_requests: int = 2  # variables requested per answer (each the best for its equation)
@@ -383,7 +387,8 @@ class OfflineProposer:
             choice = int(rng.integers(len(free)))
         _, _, before = self.solve(j, terms)
         _, _, after = self.solve(j, [*terms, free[choice]])
-        if before - after >= self.config.min_gain or (not greedy and rng.random() < 0.1):
+        needed = max(self.config.min_gain, self.config.min_relative_gain * before)
+        if before - after >= needed or (not greedy and rng.random() < 0.1):
             terms.append(free[choice])
         return terms
 
@@ -413,13 +418,13 @@ class OfflineProposer:
         return terms
 
     def _simplify(self, j, terms) -> list[str]:
-        """Backward elimination: drop terms whose removal costs < 1 % of the NMSE (or 1e-5)."""
+        """Backward elimination: drop terms whose removal costs less than the admission bar."""
         terms = list(terms)
         while len(terms) > 1:
             _, _, base = self.solve(j, terms)
             losses = [self.solve(j, terms[:i] + terms[i + 1 :])[2] for i in range(len(terms))]
             i = int(np.argmin(losses))
-            if losses[i] - base > max(0.01 * base, 1e-5):
+            if losses[i] - base > max(self.config.min_relative_gain * base, 1e-5):
                 break
             terms.pop(i)
         return terms
