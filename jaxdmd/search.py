@@ -340,6 +340,9 @@ def _recombined(state: SearchState) -> tuple[Skeleton, int] | None:
         skeleton = _compile(source, state.contract)
     except (ValueError, SkeletonError):
         return None
+    # the lines' donors asked for these variables; the recombined candidate speaks for them
+    unique = {json.dumps(r, sort_keys=True): r for e in chosen for r in e.requests}
+    skeleton = replace(skeleton, requests=tuple(unique.values()))
     islands = [i for i, isl in enumerate(state.archive.islands) if chosen[0] in isl.entries]
     return skeleton, (islands[0] if islands else 0)
 
