@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -173,14 +175,40 @@ def test_derivative_matches_finite_differences(fault15):
     assert np.abs(fd[seg] - dx[seg]).max() < 1e-2 * np.abs(dx[seg]).max()
 
 
-def test_vmap_equals_single_runs(protocol):
-    batch = protocol.train_result
-    for i in range(2):
-        single = simulate(protocol.train_points[i], "psat-5.1", 15)
-        np.testing.assert_allclose(np.asarray(batch.x[i]), np.asarray(single.x), atol=1e-9)
-        np.testing.assert_allclose(
-            np.asarray(batch.alg["P_e"][i]), np.asarray(single.alg["P_e"]), atol=1e-9
-        )
+_VMAP_SCRIPT = """
+import numpy as np
+import jaxdmd
+from jaxdmd.grid import operating_points, simulate
+ops = operating_points(2, seed=3)
+batch = simulate(ops, "psat-5.1", 15)
+# a vmapped batch shares one step sequence (the union of the runs' steps): agreement is to the
+# solver's tolerance (rtol 1e-9), not to the last bit
+for i in range(2):
+    single = simulate(ops[i], "psat-5.1", 15)
+    assert np.abs(np.asarray(batch.x[i]) - np.asarray(single.x)).max() < 1e-7
+    assert np.abs(np.asarray(batch.alg["P_e"][i]) - np.asarray(single.alg["P_e"])).max() < 1e-7
+print("vmap ok")
+"""
+
+
+def test_vmap_equals_single_runs():
+    """vmap over operating points gives the single runs' results.
+
+    In a subprocess with a time limit: jax 0.10.2's CPU runtime now and then never signals the
+    completion of the vmapped diffrax solve (a hang at 0 % CPU; see jaxdmd/grid/protocol.py),
+    which must cost this test a retry, not the whole CI run.
+    """
+    for _ in range(3):
+        try:
+            out = subprocess.run(
+                [sys.executable, "-c", _VMAP_SCRIPT], capture_output=True, text=True, timeout=150
+            )
+        except subprocess.TimeoutExpired:
+            continue
+        assert out.returncode == 0, out.stderr[-3000:]
+        assert "vmap ok" in out.stdout
+        return
+    pytest.fail("the vmapped simulation hung three times")
 
 
 # -- datasets ----------------------------------------------------------------------------------

@@ -1,0 +1,143 @@
+"""The command line as a user meets it: runs, outputs, kill and resume, user data, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = [
+    "--rounds", "3", "--prompts", "2", "--samples", "3", "--islands", "3",
+    "--operating-points", "2", "--skip-ae",
+]  # fmt: skip
+
+
+def jaxdmd(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "jaxdmd.run", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+
+
+@pytest.fixture(scope="module")
+def whole_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("whole")
+    result = jaxdmd("--out", str(out), *SMALL)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return out
+
+
+def test_run_writes_model_plot_and_summary(whole_run):
+    summary = json.loads((whole_run / "summary.json").read_text())
+    de = summary["de"]
+    assert de["rounds"] == 3 and len(de["best_score_history"]) == 4
+    assert de["targets"] == ["delta", "omega", "e_qp", "e_dp", "e_dpp"]
+    assert set(de["equations"]) == {f"d{t}/dt" for t in de["targets"]}
+    assert summary["source"]["benchmark"] == "ieee39-psat-5.1"
+    assert (whole_run / "scores.png").stat().st_size > 1000
+    model = (whole_run / "model.py").read_text()
+    assert "def equation(" in model and "DE_PARAMS" in model
+    compile(model, "model.py", "exec")  # the written module is valid Python
+
+
+def test_kill_and_resume_gives_the_same_model(whole_run, tmp_path):
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jaxdmd.run", "--out", str(out), *SMALL],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    state = out / "de_state.json"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if state.exists() and json.loads(state.read_text())["iteration"] >= 1:
+            break
+        time.sleep(0.05)
+    killed_mid_run = proc.poll() is None
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert killed_mid_run, "the run ended before it could be killed"
+    assert not (out / "summary.json").exists()
+    resumed = jaxdmd("--resume", str(out))
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    a = json.loads((whole_run / "summary.json").read_text())["de"]
+    b = json.loads((out / "summary.json").read_text())["de"]
+    assert b["source"] == a["source"]
+    assert b["params"] == a["params"]
+    assert b["best_score_history"] == a["best_score_history"]
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory) -> list[Path]:
+    folder = tmp_path_factory.mktemp("recordings")
+    base = folder / "gen31.npz"
+    result = jaxdmd(
+        "simulate", "--fault-bus", "15", "--generator", "31", "--out", str(base),
+        "--noise", "0.01", "--operating-points", "2", "--exciter", "--governor",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    files = sorted(folder.glob("gen31*.npz"))
+    assert len(files) == 2
+    return files
+
+
+def test_discovery_on_user_data(recordings, tmp_path):
+    out = tmp_path / "user"
+    result = jaxdmd("--data", *map(str, recordings), "--out", str(out), *SMALL)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["source"]["data"] == [str(p) for p in recordings]
+
+
+def test_bad_data_file_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,omega\n0,1\n0,1\n")
+    result = jaxdmd("--data", str(bad), "--out", str(tmp_path / "o"), *SMALL)
+    assert result.returncode == 2
+    assert "error:" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_closed_llm_port_is_a_clear_error(recordings, tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "JAXDMD_LLM_API_KEY": "sk-test-secret"}
+    start = time.monotonic()
+    result = subprocess.run(
+        [
+            sys.executable, "-m", "jaxdmd.run", "--data", *map(str, recordings),
+            "--out", str(tmp_path / "llm"), "--llm", f"http://127.0.0.1:{port}/v1",
+            "--model", "test-model", "--llm-timeout", "2", *SMALL,
+        ],
+        capture_output=True, text=True, timeout=300, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert f"127.0.0.1:{port}" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert "sk-test-secret" not in result.stderr + result.stdout
+    assert time.monotonic() - start < 240
+
+
+def test_example_custom_loop_runs():
+    result = subprocess.run(
+        [sys.executable, "examples/custom_loop.py", "--rounds", "6"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "library [P_e" in result.stdout  # the hidden variable was brought in
+    assert "domega/dt" in result.stdout
