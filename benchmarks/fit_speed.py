@@ -19,7 +19,6 @@ Run:  python benchmarks/fit_speed.py            (prints one JSON line)
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import subprocess
 import sys
@@ -199,21 +198,6 @@ CANDIDATES: list[tuple[str, int]] = [
 ]
 
 
-@dataclasses.dataclass(frozen=True)
-class _StandIn:
-    """Stand-in for jaxdmd.skeleton.Skeleton (used only if the real module is missing)."""
-
-    source: str
-    name: str
-    arguments: tuple[str, ...]
-    n_params: int
-    n_outputs: int
-    n_constants: int
-    length: int
-    requests: tuple[dict, ...]
-    fn: Callable
-
-
 def _arguments(source: str) -> tuple[str, ...]:
     head = source.split("(", 1)[1].split(")", 1)[0]
     return tuple(a.strip() for a in head.split(",") if a.strip() != "p")
@@ -226,26 +210,13 @@ def _function(source: str, np_module) -> Callable:
 
 
 def skeletons() -> list:
-    """The candidates as Skeleton objects (the real compile_skeleton if it is there)."""
-    import jax.numpy as jnp
+    """The candidates as checked and compiled skeletons."""
+    from jaxdmd.skeleton import compile_skeleton
 
-    try:
-        from jaxdmd.skeleton import compile_skeleton
-    except ImportError:
-        compile_skeleton = None
     out = []
-    for i, (src, n_params) in enumerate(CANDIDATES):
-        args = _arguments(src)
-        sk = None
-        if compile_skeleton is not None:
-            try:
-                sk = compile_skeleton(src, variables=VARIABLES, n_outputs=5)
-                assert sk.n_params == n_params, (sk.n_params, n_params)
-            except Exception as exc:
-                print(f"compile_skeleton failed on candidate {i}: {exc}", file=sys.stderr)
-                sk = None
-        if sk is None:
-            sk = _StandIn(src, f"c{i}", args, n_params, 5, 0, len(src), (), _function(src, jnp))
+    for src, n_params in CANDIDATES:
+        sk = compile_skeleton(src, variables=VARIABLES, n_outputs=5)
+        assert sk.n_params == n_params, (sk.n_params, n_params)
         out.append(sk)
     return out
 

@@ -300,35 +300,26 @@ def discover(args: argparse.Namespace) -> int:
     key = jax.random.key(args.seed)
     de_key, ae_key = jax.random.split(key)
 
-    problem, contract = de_problem(train)
-    t1 = time.perf_counter()
-    state = resume_or_init(problem, contract, de_key, config, out / "de_state.json")
-    progress.loop_started("DE", state)
-    state = run_loop(
-        state,
-        proposer(problem),
-        on_round=lambda s, r: progress.round("DE", s, r),
-        checkpoint=out / "de_state.json",
-    )
-    de_seconds = time.perf_counter() - t1
-    de = search.final_equations(state)
-    de_state = state
+    def loop(
+        name: str, problem: search.Problem, contract, key
+    ) -> tuple[SearchState, Equations, float]:
+        start = time.perf_counter()
+        checkpoint = out / f"{name.lower()}_state.json"
+        state = resume_or_init(problem, contract, key, config, checkpoint)
+        progress.loop_started(name, state)
+        state = run_loop(
+            state,
+            proposer(problem),
+            on_round=lambda s, r: progress.round(name, s, r),
+            checkpoint=checkpoint,
+        )
+        return state, search.final_equations(state), time.perf_counter() - start
 
+    de_state, de, de_seconds = loop("DE", *de_problem(train), de_key)
     ae = ae_state = None
     ae_seconds = 0.0
     if not args.skip_ae:
-        t2 = time.perf_counter()
-        ae_prob, ae_contract = ae_problem(train, de.contract)
-        ae_state = resume_or_init(ae_prob, ae_contract, ae_key, config, out / "ae_state.json")
-        progress.loop_started("AE", ae_state)
-        ae_state = run_loop(
-            ae_state,
-            proposer(ae_prob),
-            on_round=lambda s, r: progress.round("AE", s, r),
-            checkpoint=out / "ae_state.json",
-        )
-        ae_seconds = time.perf_counter() - t2
-        ae = search.final_equations(ae_state)
+        ae_state, ae, ae_seconds = loop("AE", *ae_problem(train, de.contract), ae_key)
 
     discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
     summary: dict[str, object] = {

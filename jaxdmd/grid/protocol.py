@@ -120,7 +120,7 @@ class ProtocolData:
     config: dict = field(default_factory=dict)
 
 
-def _simulate_each(ops: OperatingPoint, model, fault, **kw) -> SimResult:
+def simulate_each(ops: OperatingPoint, model, fault, **kw) -> SimResult:
     """Simulate stacked operating points one by one and stack the results like a vmapped run.
 
     A loop, not ``vmap``: the batched diffrax solve gives no speed-up here (every run of a batch
@@ -171,8 +171,8 @@ def paper_protocol(
     train_ops = ops[:n_train]
     test_ops = ops[n_train:]
     kw = dict(t_end=t_end, dt=dt, settings=settings)
-    r_train = _simulate_each(train_ops, model, tf, **kw)
-    r_test = _simulate_each(test_ops, model, sf, **kw) if n_test else None
+    r_train = simulate_each(train_ops, model, tf, **kw)
+    r_test = simulate_each(test_ops, model, sf, **kw) if n_test else None
     noise_key = jax.random.fold_in(jax.random.key(seed), 0x5EED)
     train, clean, exact, test = {}, {}, {}, {}
     for gb in gens:
