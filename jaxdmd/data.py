@@ -36,6 +36,7 @@ __all__ = [
     "Dataset",
     "differentiate",
     "differentiation_error",
+    "matched_filter",
     "samples",
     "segments",
     "stack_samples",
@@ -241,6 +242,42 @@ def differentiate(
 # ------------------------------------------------------------------------------------------------
 # accuracy measurement on synthetic signals
 # ------------------------------------------------------------------------------------------------
+
+
+def matched_filter(
+    t: ArrayLike, *, events: Iterable[float] = (), method: Method = DEFAULT_METHOD, **kw: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """The smoothing that `differentiate` applies to the true derivative, as a band operator.
+
+    `differentiate` is linear in ``x``: its derivative estimate is ``D @ x`` for a matrix ``D``
+    whose rows sum to zero (a constant has no derivative). Hence, exactly,
+    ``(D @ x)_i = sum_l c_il (x_l - x_(l-1))`` with ``c_il = sum_(j >= l) D_ij``, and every
+    increment is the integral of ``dx/dt`` over its sample interval, approximated by the
+    trapezoid rule. So ``D @ x = S @ dxdt`` with a matrix ``S`` that smooths like the estimator.
+    Comparing the estimates with ``S @ f(x)`` instead of ``f(x)`` removes the estimator's
+    smoothing bias from a fit (fast transients right after the events are where it matters).
+
+    Returns ``(index, weight)``, both ``[n, w]``: ``(S @ y)_i = sum_k weight[i, k] *
+    y[index[i, k]]``. Options as for `differentiate` (the same method and windows must be used
+    for the derivative estimates the operator is matched to).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    n = len(t)
+    _, d = differentiate(t, np.eye(n), events=events, method=method, **kw)
+    c = np.cumsum(d[:, ::-1], axis=1)[:, ::-1]  # c[i, l] = sum_{j >= l} D[i, j]
+    w = c[:, 1:] * np.diff(t)  # interval weights
+    s = np.zeros_like(d)
+    s[:, :-1] += w / 2
+    s[:, 1:] += w / 2
+    s[np.abs(s) < 1e-10 * np.abs(s).max()] = 0.0  # round-off of the zero row sums
+    nonzero = s != 0
+    lo = np.where(nonzero.any(axis=1), nonzero.argmax(axis=1), 0)
+    hi = np.where(nonzero.any(axis=1), n - 1 - nonzero[:, ::-1].argmax(axis=1), 0)
+    width = int((hi - lo).max()) + 1
+    index = np.minimum(lo[:, None] + np.arange(width)[None, :], n - 1)
+    inside = lo[:, None] + np.arange(width)[None, :] <= hi[:, None]
+    weight = np.where(inside, np.take_along_axis(s, index, axis=1), 0.0)
+    return index, weight
 
 
 def synthetic_signal(

@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdmd import search
-from jaxdmd.data import Dataset, stack_samples
+from jaxdmd.data import Dataset, matched_filter, stack_samples
+from jaxdmd.fit import Operator
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
@@ -42,10 +43,40 @@ def _stack(datasets: Sequence[Dataset]) -> dict[str, jax.Array]:
     return {k: jnp.asarray(v) for k, v in stack_samples(datasets, names).items()}
 
 
+def matched_operator(datasets: Sequence[Dataset]) -> Operator:
+    """The smoothing matched to the default derivative estimator, over concatenated recordings.
+
+    Each recording gets :func:`jaxdmd.data.matched_filter` of its own time grid and events
+    (computed once per distinct grid), shifted to its place in the concatenation.
+    """
+    cache: dict[tuple[bytes, tuple[float, ...]], tuple[np.ndarray, np.ndarray]] = {}
+    indices, weights, offset = [], [], 0
+    for ds in datasets:
+        key = (np.asarray(ds.t).tobytes(), ds.events)
+        if key not in cache:
+            cache[key] = matched_filter(ds.t, events=ds.events)
+        index, weight = cache[key]
+        indices.append(index + offset)
+        weights.append(weight)
+        offset += ds.n_samples
+    width = max(i.shape[1] for i in indices)  # pad every band to the widest (weight 0)
+    index = np.concatenate(
+        [np.pad(i, [(0, 0), (0, width - i.shape[1])], mode="edge") for i in indices]
+    )
+    weight = np.concatenate([np.pad(w, [(0, 0), (0, width - w.shape[1])]) for w in weights])
+    return Operator(index, weight)
+
+
 def de_problem(
-    datasets: Sequence[Dataset], system: str = "synchronous generator"
+    datasets: Sequence[Dataset], system: str = "synchronous generator", *, matched: bool = False
 ) -> tuple[Problem, Contract]:
-    """The DE loop's problem: state derivatives from every recording, the catalog, the contract."""
+    """The DE loop's problem: state derivatives from every recording, the catalog, the contract.
+
+    With ``matched``, the recordings' derivatives must be the default estimates of
+    :func:`jaxdmd.data.differentiate` (``Dataset.create`` without derivatives, or
+    ``with_estimated_derivatives()``): predictions are then smoothed like the estimates
+    (:func:`matched_operator`), which removes the estimator's bias at fast transients.
+    """
     datasets = list(datasets)
     first = datasets[0]
     if not first.state_names:
@@ -61,6 +92,7 @@ def de_problem(
         targets=targets,
         target_names=states,
         catalog=_variables(first, others),
+        operator=matched_operator(datasets) if matched else None,
     )
     contract = Contract(
         loop="DE",

@@ -73,7 +73,7 @@ import numpy as np
 import optax
 from jax import lax
 
-__all__ = ["FitConfig", "FitResult", "fit_batch", "nmse"]
+__all__ = ["FitConfig", "FitResult", "Operator", "fit_batch", "nmse"]
 
 Array = jax.Array
 
@@ -171,14 +171,33 @@ def _variance(target: np.ndarray) -> np.ndarray:
 # One candidate: residuals, losses, Jacobian products
 
 
+class Operator:
+    """A linear operator applied to every prediction before it is compared with the targets.
+
+    ``(S y)_i = sum_k weight[i, k] * y[index[i, k]]`` (a band matrix; see
+    :func:`jaxdmd.data.matched_filter`, which makes the operator matched to a derivative
+    estimator). Compared by identity, so it can sit in the compiled fit's cache key.
+    """
+
+    def __init__(self, index: Any, weight: Any):
+        self.index = jnp.asarray(np.asarray(index, dtype=np.int64))
+        self.weight = jnp.asarray(np.asarray(weight, dtype=np.float64))
+        if self.index.shape != self.weight.shape or self.index.ndim != 2:
+            raise ValueError("operator index and weight must both be [N, w]")
+
+    def __call__(self, y: Array) -> Array:
+        return jnp.sum(y[..., self.index] * self.weight, axis=-1)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Model:
-    """A checked candidate: its function, arguments and (padded) parameter count."""
+    """A checked candidate: its function, arguments, (padded) parameter count and operator."""
 
     fn: Callable[..., Any]
     arguments: tuple[str, ...]
     n_params: int  # >= 1 (a parameter-free candidate gets one dummy parameter)
     seed: int
+    operator: Operator | None = None
 
 
 def _predict(model: _Model, data: Mapping[str, Array], p: Array, n_outputs: int) -> Array:
@@ -197,7 +216,8 @@ def _predict(model: _Model, data: Mapping[str, Array], p: Array, n_outputs: int)
         elif o.shape != (n,):
             raise ValueError(f"output {k} has shape {o.shape}, expected () or ({n},)")
         rows.append(jnp.broadcast_to(o, (n,)))
-    return jnp.stack(rows)
+    pred = jnp.stack(rows)
+    return pred if model.operator is None else model.operator(pred)
 
 
 def _residual(model, data, targets, scale, p):
@@ -406,6 +426,7 @@ def _check(
     data: Mapping[str, Array],
     targets: Array,
     scale: Array,
+    operator: Operator | None = None,
 ) -> tuple[_Model | None, str | None]:
     """Trace a candidate alone (no XLA compile); return the model or the reason to drop it."""
     n_outputs = targets.shape[0]
@@ -418,7 +439,7 @@ def _check(
             return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
         n_params = max(1, int(skeleton.n_params))
         seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
-        model = _Model(fn=skeleton.fn, arguments=arguments, n_params=n_params, seed=seed)
+        model = _Model(skeleton.fn, arguments, n_params, seed, operator)
         p = jax.ShapeDtypeStruct((n_params,), jnp.float64)
         jax.eval_shape(lambda q: _linearise(model, data, targets, scale, q), p)
     except Exception as exc:
@@ -543,6 +564,7 @@ def fit_batch(
     key: Array,
     config: FitConfig = FitConfig(),
     weights: Any | None = None,
+    operator: Operator | None = None,
 ) -> list[FitResult]:
     """Fit every candidate (with ``config.restarts`` restarts each) in one compiled call.
 
@@ -554,6 +576,8 @@ def fit_batch(
         key: a JAX PRNG key; the result is deterministic given the key.
         config: see :class:`FitConfig`.
         weights: optional non-negative sample weights, broadcastable to ``[n_outputs, N]``.
+        operator: optional :class:`Operator` applied to every output's predictions before the
+            comparison (e.g. the smoothing matched to the derivative estimates of the targets).
 
     Returns:
         One :class:`FitResult` per candidate, in order. Dropped candidates have
@@ -581,6 +605,10 @@ def fit_batch(
         raise ValueError("weights must be finite and non-negative")
     if config.restarts < 1:
         raise ValueError("config.restarts must be >= 1")
+    if operator is not None and (
+        operator.index.shape[0] != n or int(operator.index.max(initial=0)) >= n
+    ):
+        raise ValueError(f"the operator does not fit {n} samples")
 
     scale_np = np.sqrt(w / (n * _variance(targets_np)[:, None]))
     data = {k: jnp.asarray(v) for k, v in data_np.items()}
@@ -589,7 +617,7 @@ def fit_batch(
     results: list[FitResult | None] = [None] * len(skeletons)
     models: dict[int, _Model] = {}
     for i, sk in enumerate(skeletons):
-        model, error = _check(sk, data, tgt, scale)
+        model, error = _check(sk, data, tgt, scale, operator)
         if model is None:
             results[i] = _dropped(sk, n_outputs, error or "unknown error")
         else:

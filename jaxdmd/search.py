@@ -39,7 +39,7 @@ import numpy as np
 
 from jaxdmd import archive as arc
 from jaxdmd import lines as ln
-from jaxdmd.fit import FitConfig, FitResult, fit_batch
+from jaxdmd.fit import FitConfig, FitResult, Operator, fit_batch
 from jaxdmd.prompts import Contract, Example, PromptRequest, Variable, parse_variable_requests
 from jaxdmd.prompts import render as render_prompt
 from jaxdmd.proposers import Sample
@@ -72,6 +72,9 @@ class Problem(eqx.Module):
     ``variables`` holds all channels a skeleton could ever use (states and the whole catalog);
     a skeleton sees only those in its contract. ``targets`` are the state derivatives (DE loop)
     or the algebraic variables (AE loop), one row per target, several recordings concatenated.
+    ``operator``, when given, is applied to every prediction before the comparison: for
+    estimated derivatives, the smoothing matched to the estimator
+    (:func:`jaxdmd.data.matched_filter`), so that the estimator's bias cancels.
     """
 
     variables: dict[str, jax.Array]
@@ -79,6 +82,7 @@ class Problem(eqx.Module):
     target_names: tuple[str, ...] = eqx.field(static=True)
     catalog: tuple[Variable, ...] = eqx.field(static=True)
     weights: jax.Array | None = None
+    operator: Operator | None = eqx.field(static=True, default=None)
 
     def find(self, name: str) -> Variable | None:
         return next((v for v in self.catalog if v.name == name), None)
@@ -156,7 +160,13 @@ def _fit(
     names = sorted({a for s in skeletons for a in s.arguments})
     variables = {n: problem.variables[n] for n in names}
     return fit_batch(
-        skeletons, variables, problem.targets, key=key, config=config, weights=problem.weights
+        skeletons,
+        variables,
+        problem.targets,
+        key=key,
+        config=config,
+        weights=problem.weights,
+        operator=problem.operator,
     )
 
 

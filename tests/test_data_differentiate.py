@@ -66,3 +66,23 @@ def test_accuracy_under_one_percent_noise():
     assert unsplit["deriv_median"] > 1.5 * r["deriv_median"]
     raw = differentiation_error("gradient", n_signals=30, seed=123)
     assert raw["deriv_median"] > 0.5
+
+
+def test_matched_filter_reproduces_the_estimator_on_a_fast_transient():
+    """D x = S dx/dt: the estimate equals the matched smoothing of the exact derivative."""
+    from jaxdmd.data import matched_filter
+
+    t = np.arange(0.0, 3.0 + 1e-9, 0.01)
+    events = (1.0, 1.1)
+    tau = 0.04  # as fast as e''_d after a fault
+    x = np.where(t < 1.0, np.sin(t), np.sin(1.0) + 0.5 * (1 - np.exp(-(t - 1.0) / tau)))
+    dxdt = np.where(t < 1.0, np.cos(t), 0.5 / tau * np.exp(-(t - 1.0) / tau))
+    _, estimate = differentiate(t, x, events=events)
+    index, weight = matched_filter(t, events=events)
+    matched = np.sum(dxdt[index] * weight, axis=1)
+    plain_error = np.abs(estimate - dxdt).max()
+    matched_error = np.abs(estimate - matched).max()
+    assert index.shape == weight.shape and index.shape[0] == len(t)
+    assert index.shape[1] < 40  # a band, not a dense matrix
+    # only the trapezoid rule on the 0.04 s exponential remains: ten times closer
+    assert matched_error < 0.15 * plain_error

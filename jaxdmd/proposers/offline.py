@@ -286,6 +286,7 @@ class OfflineProposer:
         catalog: Sequence[Variable] = (),
         config: OfflineConfig | None = None,
         weights: np.ndarray | None = None,
+        operator: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         self.config = config or OfflineConfig()
         targets = np.asarray(targets, dtype=float)
@@ -294,7 +295,11 @@ class OfflineProposer:
         index = np.arange(0, n, stride)
         if weights is not None:
             index = index[np.asarray(weights)[index] > 0]
-        self.data = {k: np.asarray(v, dtype=float)[index] for k, v in variables.items()}
+        # terms are evaluated on all samples (the operator mixes neighbours), then subsampled
+        self.full = {k: np.asarray(v, dtype=float) for k, v in variables.items()}
+        self.data = {k: v[index] for k, v in self.full.items()}
+        self.index = index
+        self.operator = operator
         self.targets = targets[:, index]
         self.scale = self.targets.std(axis=1) + 1e-300
         self.catalog = tuple(catalog)
@@ -304,12 +309,14 @@ class OfflineProposer:
     def for_problem(cls, problem: object, config: OfflineConfig | None = None) -> OfflineProposer:
         """Build from a :class:`jaxdmd.search.Problem`."""
         weights = getattr(problem, "weights", None)
+        op = getattr(problem, "operator", None)
         return cls(
             {k: np.asarray(v) for k, v in problem.variables.items()},  # type: ignore[attr-defined]
             np.asarray(problem.targets),  # type: ignore[attr-defined]
             problem.catalog,  # type: ignore[attr-defined]
             config,
             None if weights is None else np.asarray(weights),
+            None if op is None else (np.asarray(op.index), np.asarray(op.weight)),
         )
 
     # -- numerics --------------------------------------------------------------------------
@@ -317,11 +324,15 @@ class OfflineProposer:
     def column(self, term: str) -> np.ndarray | None:
         if term not in self._cache:
             try:
+                n = len(next(iter(self.full.values())))
                 with np.errstate(all="ignore"):
                     value = np.broadcast_to(
-                        evaluate(ast.parse(term, mode="eval"), self.data),
-                        self.targets.shape[1:],
+                        evaluate(ast.parse(term, mode="eval"), self.full), (n,)
                     ).astype(float)
+                if self.operator is not None:
+                    index, weight = self.operator
+                    value = np.sum(value[index] * weight, axis=1)
+                value = value[self.index]
                 ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
                 self._cache[term] = value if ok else None
             except (ValueError, KeyError, TypeError, ZeroDivisionError):
