@@ -43,6 +43,11 @@ def _stack(datasets: Sequence[Dataset]) -> dict[str, jax.Array]:
     return {k: jnp.asarray(v) for k, v in stack_samples(datasets, names).items()}
 
 
+def _groups(datasets: Sequence[Dataset]) -> jax.Array:
+    """The recording index of every concatenated sample."""
+    return jnp.asarray(np.concatenate([np.full(ds.n_samples, i) for i, ds in enumerate(datasets)]))
+
+
 def matched_operator(datasets: Sequence[Dataset]) -> Operator:
     """The smoothing matched to the default derivative estimator, over concatenated recordings.
 
@@ -93,6 +98,7 @@ def de_problem(
         target_names=states,
         catalog=_variables(first, others),
         operator=matched_operator(datasets) if matched else None,
+        groups=_groups(datasets),
     )
     contract = Contract(
         loop="DE",
@@ -125,6 +131,7 @@ def ae_problem(
         targets=jnp.stack([variables[t] for t in targets]),
         target_names=targets,
         catalog=_variables(first, [*boundary, *spare_inputs]),
+        groups=_groups(datasets),
     )
     contract = Contract(
         loop="AE",

@@ -83,6 +83,7 @@ class Problem(eqx.Module):
     catalog: tuple[Variable, ...] = eqx.field(static=True)
     weights: jax.Array | None = None
     operator: Operator | None = eqx.field(static=True, default=None)
+    groups: jax.Array | None = None  # recording index of every sample (for cross-validation)
 
     def find(self, name: str) -> Variable | None:
         return next((v for v in self.catalog if v.name == name), None)
@@ -449,29 +450,97 @@ class Equations:
         return _compile(self.source, self.contract)
 
 
-def final_equations(state: SearchState, tolerance: float = 0.05, floor: float = 1e-4) -> Equations:
-    """The parsimonious result: for each equation, the shortest line within tolerance of the best.
+def _line_skeleton(contract: Contract, line: ln.Line) -> Skeleton:
+    source = ln.assemble("line", contract.arguments, [line], ["y"])
+    return compile_skeleton(source, variables=contract.arguments, n_outputs=1)
 
-    Among all archived lines of equation j with NMSE <= min_j * (1 + tolerance) + floor, the one
-    with the fewest parameters (then the fewest nodes, then the lowest loss) is kept; the kept
-    lines are assembled into one skeleton and refitted. This guards the result against terms that
-    only fit the noise of the derivative estimates (they lower the training NMSE by less than the
-    tolerance).
+
+def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line]) -> np.ndarray:
+    """Leave-one-recording-out NMSE of candidate lines for equation ``j``.
+
+    Each line is refitted with one recording's samples weighted out (so a matched operator keeps
+    its recordings intact) and scored on that recording; the held-out squared errors of all folds
+    are summed and normalised like the training NMSE. A line that fails scores ``inf``.
+    """
+    problem = state.problem
+    groups = np.asarray(problem.groups)
+    target = np.asarray(problem.targets[j])
+    var = float(np.var(target)) or 1.0
+    sse = np.full(len(lines), np.inf)
+    compiled: list[tuple[int, Skeleton]] = []
+    for i, line in enumerate(lines):
+        try:
+            compiled.append((i, _line_skeleton(state.contract, line)))
+        except SkeletonError:
+            continue
+    if not compiled:
+        return sse
+    for i, _ in compiled:
+        sse[i] = 0.0
+    skeletons = [sk for _, sk in compiled]
+    names = sorted({a for sk in skeletons for a in sk.arguments})
+    variables = {n: problem.variables[n] for n in names}
+    for fold, g in enumerate(np.unique(groups)):
+        held = groups == g
+        results = fit_batch(
+            skeletons,
+            variables,
+            target[None],
+            key=jax.random.fold_in(state.key, 1000 + fold),
+            config=state.config.fit,
+            weights=(~held).astype(float)[None],
+            operator=problem.operator,
+        )
+        for (i, sk), result in zip(compiled, results, strict=True):
+            if result.error is not None:
+                sse[i] = np.inf
+                continue
+            pred = sk(variables, jnp.asarray(result.params))[0]
+            if problem.operator is not None:
+                pred = problem.operator(pred)
+            sse[i] += float(np.sum((np.asarray(pred)[held] - target[held]) ** 2))
+    return sse / (len(target) * var)
+
+
+def final_equations(
+    state: SearchState, tolerance: float = 0.05, floor: float = 1e-4, candidates: int = 15
+) -> Equations:
+    """The result: for each equation, the simplest line that generalises as well as the best.
+
+    With several recordings (``problem.groups``), the ``candidates`` archived lines of equation
+    j with the lowest training NMSE are scored by leave-one-recording-out cross-validation
+    (:func:`cross_validated_losses`); terms that only fit the noise of one recording do not carry
+    over to another. Among the lines within ``tolerance`` (relative, plus ``floor``) of the best
+    score, the one with the fewest parameters (then the fewest nodes, then the lowest score) is
+    kept. With one recording the training NMSE is the score. The kept lines are assembled into
+    one skeleton and refitted on all the data.
     """
     entries = _distinct(e for isl in state.archive.islands for e in isl.entries)
     n_out = len(state.contract.targets)
+    groups = state.problem.groups
+    use_cv = groups is not None and len(np.unique(np.asarray(groups))) > 1
     chosen: list[ln.Line] = []
     for j in range(n_out):
-        best = min(e.losses[j] for e in entries)
-        bound = best * (1 + tolerance) + floor
-        options = []
-        for e in entries:
-            if e.losses[j] <= bound:
-                line = ln.split_lines(e.source)[0][j]
-                nodes = sum(1 for _ in ast.walk(line.expr))
-                options.append((line.n_params, nodes, e.losses[j], line))
-        options.sort(key=lambda o: o[:3])
-        chosen.append(options[0][3])
+        lines: dict[str, tuple[float, ln.Line]] = {}
+        for e in sorted(entries, key=lambda e, j=j: e.losses[j]):
+            line = ln.split_lines(e.source)[0][j]
+            if line.text not in lines:
+                lines[line.text] = (e.losses[j], line)
+            if len(lines) >= candidates:
+                break
+        options = list(lines.values())
+        scores = (
+            cross_validated_losses(state, j, [line for _, line in options])
+            if use_cv
+            else np.array([loss for loss, _ in options])
+        )
+        bound = float(np.min(scores)) * (1 + tolerance) + floor
+        ranked = sorted(
+            (line.n_params, sum(1 for _ in ast.walk(line.expr)), score, k)
+            for k, ((_, line), score) in enumerate(zip(options, scores, strict=True))
+            if score <= bound
+        )
+        chosen.append(options[ranked[0][3]][1])
     source = ln.assemble(
         state.contract.function_name,
         state.contract.arguments,
