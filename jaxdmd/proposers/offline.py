@@ -19,8 +19,11 @@ forward selection, remove the least useful term, swap a term, prune terms whose 
 negligible, and cross over equations between two parents (each equation from the parent with
 the lower loss on it). New terms are drawn from a softmax over how much of the equation's
 residual each explains once the terms already present are projected out (with some uniform
-exploration), on a subsample of the data the proposer was built with. Variable requests rank the
-catalog variables outside the library by the same measure. Deterministic given the request's seed.
+exploration), on a subsample of the data the proposer was built with. A term is admitted, and
+backward elimination keeps it, only if it lowers the equation's leave-one-recording-out error
+(when the data hold several recordings) by a few per cent: a term that only fits the noise of one
+recording does not help predict another. Variable requests rank the catalog variables outside
+the library by the explained share. Deterministic given the request's seed.
 """
 
 from __future__ import annotations
@@ -287,6 +290,7 @@ class OfflineProposer:
         config: OfflineConfig | None = None,
         weights: np.ndarray | None = None,
         operator: tuple[np.ndarray, np.ndarray] | None = None,
+        groups: np.ndarray | None = None,
     ):
         self.config = config or OfflineConfig()
         targets = np.asarray(targets, dtype=float)
@@ -301,6 +305,10 @@ class OfflineProposer:
         self.index = index
         self.operator = operator
         self.targets = targets[:, index]
+        # recordings of the subsample: terms are admitted by their leave-one-recording-out error
+        self.groups = None if groups is None else np.asarray(groups)[index]
+        if self.groups is not None and len(np.unique(self.groups)) < 2:
+            self.groups = None
         self.scale = self.targets.std(axis=1) + 1e-300
         self.catalog = tuple(catalog)
         self._cache: dict[str, np.ndarray | None] = {}
@@ -317,6 +325,7 @@ class OfflineProposer:
             config,
             None if weights is None else np.asarray(weights),
             None if op is None else (np.asarray(op.index), np.asarray(op.weight)),
+            None if getattr(problem, "groups", None) is None else np.asarray(problem.groups),
         )
 
     # -- numerics --------------------------------------------------------------------------
@@ -353,6 +362,22 @@ class OfflineProposer:
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
         residual = y - x @ coef
         return coef, residual, float(np.mean(residual**2) / self.scale[j] ** 2)
+
+    def held_out(self, j: int, terms: Sequence[str]) -> float:
+        """Leave-one-recording-out NMSE of equation j with these terms (training NMSE if the
+        data are one recording): the measure by which terms are admitted and dropped."""
+        if self.groups is None:
+            return self.solve(j, terms)[2]
+        y = self.targets[j]
+        x = self.design(terms)
+        if x.shape[1] == 0:
+            return float(np.mean(y**2) / self.scale[j] ** 2)
+        sse = 0.0
+        for g in np.unique(self.groups):
+            held = self.groups == g
+            coef, *_ = np.linalg.lstsq(x[~held], y[~held], rcond=None)
+            sse += float(np.sum((y[held] - x[held] @ coef) ** 2))
+        return sse / len(y) / self.scale[j] ** 2
 
     def explained(self, j: int, terms: Sequence[str], pool: Sequence[str]) -> np.ndarray:
         """Share of equation j's residual each pool term explains beyond ``terms``."""
@@ -396,8 +421,8 @@ class OfflineProposer:
             )
         else:
             choice = int(rng.integers(len(free)))
-        _, _, before = self.solve(j, terms)
-        _, _, after = self.solve(j, [*terms, free[choice]])
+        before = self.held_out(j, terms)
+        after = self.held_out(j, [*terms, free[choice]])
         needed = max(self.config.min_gain, self.config.min_relative_gain * before)
         if before - after >= needed or (not greedy and rng.random() < 0.1):
             terms.append(free[choice])
@@ -432,8 +457,8 @@ class OfflineProposer:
         """Backward elimination: drop terms whose removal costs less than the admission bar."""
         terms = list(terms)
         while len(terms) > 1:
-            _, _, base = self.solve(j, terms)
-            losses = [self.solve(j, terms[:i] + terms[i + 1 :])[2] for i in range(len(terms))]
+            base = self.held_out(j, terms)
+            losses = [self.held_out(j, terms[:i] + terms[i + 1 :]) for i in range(len(terms))]
             i = int(np.argmin(losses))
             if losses[i] - base > max(self.config.min_relative_gain * base, 1e-5):
                 break
