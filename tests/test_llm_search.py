@@ -14,11 +14,12 @@ import re
 
 import jax
 from llm_server import ChatServer, Received, Reply, completion
+from test_llm import SECRET, make_config
 from test_search import hidden_problem
 
 from jaxdmd import search
 from jaxdmd.discover import run_loop
-from jaxdmd.proposers.llm import LLMConfig, LLMProposer, ReplayProposer
+from jaxdmd.proposers.llm import LLMProposer, ReplayProposer
 
 CATALOG = ("u", "w", "z")
 
@@ -56,22 +57,6 @@ def generic_model(fail_every: int | None = None):
     return handle
 
 
-def config(url: str, cache=None, **kw) -> LLMConfig:
-    return LLMConfig(
-        base_url=url,
-        model="generic",
-        api_key="sk-never-logged",
-        request_timeout=1.0,
-        connect_timeout=0.5,
-        round_timeout=20.0,
-        max_retries=4,
-        backoff_base=0.02,
-        backoff_cap=0.1,
-        cache_dir=cache,
-        **kw,
-    )
-
-
 SETTINGS = search.SearchConfig(n_islands=3, prompts_per_round=2, samples_per_prompt=3, max_rounds=5)
 
 
@@ -81,7 +66,9 @@ def test_flaky_endpoint_run_completes_and_replays_without_the_server(tmp_path):
     state0 = search.init(problem, contract, jax.random.key(5), SETTINGS)
     sizes = []
     with ChatServer(generic_model(fail_every=3)) as server:
-        proposer = LLMProposer(config(server.url, cache))
+        proposer = LLMProposer(
+            make_config(server.url, cache_dir=cache, round_timeout=20.0, max_retries=4)
+        )
         original = proposer.propose
 
         def counted(requests):
@@ -95,7 +82,7 @@ def test_flaky_endpoint_run_completes_and_replays_without_the_server(tmp_path):
     # a third of the calls failed (429, 500, timeout); every sample still arrived: no round lost
     assert sizes == [6] * recorded.iteration
     assert stats["retries"] >= 2 * recorded.iteration
-    assert "sk-never-logged" not in json.dumps(stats)
+    assert SECRET not in json.dumps(stats)
     # the generic model asked for every catalog variable: the measured ones joined, z is missing
     assert {"u", "w"} <= set(recorded.contract.arguments)
     assert recorded.missing == ("z",)
@@ -104,4 +91,4 @@ def test_flaky_endpoint_run_completes_and_replays_without_the_server(tmp_path):
     assert search.state_to_dict(replayed) == search.state_to_dict(recorded)
     assert search.final_equations(replayed).source == search.final_equations(recorded).source
     for path in cache.rglob("*.json"):
-        assert b"sk-never-logged" not in path.read_bytes()
+        assert SECRET.encode() not in path.read_bytes()
