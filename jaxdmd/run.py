@@ -71,6 +71,11 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--tau-c", type=float, default=0.2, help="cluster temperature")
     g.add_argument("--tau-l", type=float, default=0.2, help="code-length temperature")
     g.add_argument("--seed", type=int, default=0)
+    g.add_argument(
+        "--no-recombine",
+        action="store_true",
+        help="do not offer the per-equation recombination of the best lines each round",
+    )
     g.add_argument("--skip-ae", action="store_true", help="run the DE loop only")
     g.add_argument("--resume", metavar="DIR", help="continue the run saved in DIR")
     try:
@@ -256,6 +261,7 @@ def _config(args: argparse.Namespace) -> SearchConfig:
         tau_c=args.tau_c,
         tau_l=args.tau_l,
         max_rounds=args.rounds,
+        recombine=not args.no_recombine,
     )
 
 
@@ -273,6 +279,7 @@ _RUN_KEYS = (
     "tau_c",
     "tau_l",
     "seed",
+    "no_recombine",
     "skip_ae",
 )
 
