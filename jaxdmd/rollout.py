@@ -160,6 +160,16 @@ def _extrapolate(ts: np.ndarray, ys: np.ndarray, at: float, end: Literal["left",
     return y0 + (y1 - y0) * (at - t0) / (t1 - t0)
 
 
+def _continuous(data: Dataset, name: str) -> np.ndarray:
+    """A recorded channel as a continuous signal: angles (unit ``rad``) are unwrapped.
+
+    Recorders and PMU exports wrap phase angles to (-pi, pi]; interpolating across a wrap would
+    sweep the played-in angle through a full turn between two samples.
+    """
+    values = np.asarray(data[name], dtype=np.float64)
+    return np.unwrap(values) if data.unit(name) == "rad" else values
+
+
 def play_in_knots(
     t: np.ndarray, values: np.ndarray, events: Sequence[float] = ()
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -444,7 +454,7 @@ def rollout(
 
     t = np.asarray(data.t, dtype=np.float64)
     cols = (
-        np.stack([np.asarray(data[n]) for n in played], axis=1)
+        np.stack([_continuous(data, n) for n in played], axis=1)
         if played
         else np.zeros((t.shape[0], 1))
     )

@@ -66,6 +66,33 @@ def test_play_in_across_a_jump_is_exact(event: float) -> None:
     np.testing.assert_allclose(res["x"], ds["x"], atol=1e-9)
 
 
+def test_wrapped_angle_is_played_in_as_a_continuous_signal() -> None:
+    """x' = cos(theta) with theta = 3 t recorded wrapped to (-pi, pi], as recorders store it."""
+    t = np.round(np.arange(0.0, 3.0 + 1e-9, 0.01), 10)
+    theta = 3.0 * t
+    wrapped = np.angle(np.exp(1j * theta))
+    assert np.abs(np.diff(wrapped)).max() > 6  # the record really wraps
+    x = np.sin(theta) / 3.0
+    model = _equations(
+        "DE",
+        ["x"],
+        ["x"],
+        [("theta", "boundary")],
+        "def f(x, theta, p):\n    return p[0] * cos(theta)\n",
+        [1.0],
+    )
+    ds = Dataset.create(
+        t,
+        {"x": x, "theta": wrapped},
+        {"x": "state", "theta": "boundary"},
+        units={"x": "pu", "theta": "rad"},
+        derivatives={"x": np.cos(theta)},
+    )
+    res = rollout(model, ds, mode="de")
+    # linear play-in of the unwrapped angle: only the interpolation error of cos remains
+    np.testing.assert_allclose(res["x"], x, atol=2e-5)
+
+
 def test_knots_are_right_continuous_with_both_limits() -> None:
     t = np.arange(0.0, 0.06, 0.01)
     u = np.where(t < 0.03, t, 5.0 + t)  # sample at the event (0.03) is post-event
