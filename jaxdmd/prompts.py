@@ -32,6 +32,11 @@ class Contract:
     system: str = "synchronous generator"
 
     @property
+    def outputs(self) -> tuple[str, ...]:
+        """Names of the skeleton's outputs: ``d_<state>`` (DE loop) or ``<variable>_`` (AE)."""
+        return tuple(f"d_{t}" if self.loop == "DE" else f"{t}_" for t in self.targets)
+
+    @property
     def arguments(self) -> tuple[str, ...]:
         """Argument names of the target function, in order, before the parameter vector `p`."""
         return tuple(v.name for v in self.states) + tuple(v.name for v in self.library)
@@ -118,7 +123,7 @@ def render_contract(contract: Contract) -> str:
         if contract.library
         else "(empty: only the states are available so far)"
     )
-    outputs = ", ".join(f"d_{t}" if contract.loop == "DE" else t for t in contract.targets)
+    outputs = ", ".join(contract.outputs if contract.loop == "DE" else contract.targets)
     return "\n".join(
         [
             "# Role",

@@ -130,17 +130,13 @@ def linear_seed(contract: Contract) -> str:
     """The paper's seed skeleton: every target linear in every argument, plus a constant."""
     args = contract.arguments
     body, k = [], 0
-    outputs = _output_names(contract)
+    outputs = contract.outputs
     for out in outputs:
         terms = [f"p[{k}]"] + [f"p[{k + 1 + i}] * {a}" for i, a in enumerate(args)]
         k += 1 + len(args)
         body.append(f"    {out} = " + " + ".join(terms))
     head = f"def {contract.function_name}({', '.join([*args, 'p'])}):"
     return "\n".join([head, *body, f"    return {', '.join(outputs)}"]) + "\n"
-
-
-def _output_names(contract: Contract) -> list[str]:
-    return [f"d_{t}" if contract.loop == "DE" else f"{t}_" for t in contract.targets]
 
 
 def _compile(text: str, contract: Contract) -> Skeleton:
@@ -346,7 +342,7 @@ def _recombined(state: SearchState) -> tuple[Skeleton, int] | None:
             state.contract.function_name,
             state.contract.arguments,
             lines,
-            _output_names(state.contract),
+            state.contract.outputs,
         )
         skeleton = _compile(source, state.contract)
     except (ValueError, SkeletonError):
@@ -545,7 +541,7 @@ def final_equations(
         state.contract.function_name,
         state.contract.arguments,
         chosen,
-        _output_names(state.contract),
+        state.contract.outputs,
     )
     try:
         skeleton = _compile(source, state.contract)

@@ -33,12 +33,16 @@ import itertools
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from jaxdmd import lines as ln
 from jaxdmd.prompts import Contract, PromptRequest, Variable
 from jaxdmd.proposers import Sample
+
+if TYPE_CHECKING:
+    from jaxdmd.search import Problem
 
 _NUMPY = {
     "sin": np.sin,
@@ -314,18 +318,17 @@ class OfflineProposer:
         self._cache: dict[str, np.ndarray | None] = {}
 
     @classmethod
-    def for_problem(cls, problem: object, config: OfflineConfig | None = None) -> OfflineProposer:
-        """Build from a :class:`jaxdmd.search.Problem`."""
-        weights = getattr(problem, "weights", None)
-        op = getattr(problem, "operator", None)
+    def for_problem(cls, problem: Problem, config: OfflineConfig | None = None) -> OfflineProposer:
+        """Build from a loop's :class:`jaxdmd.search.Problem` (its data, operator, recordings)."""
+        op = problem.operator
         return cls(
-            {k: np.asarray(v) for k, v in problem.variables.items()},  # type: ignore[attr-defined]
-            np.asarray(problem.targets),  # type: ignore[attr-defined]
-            problem.catalog,  # type: ignore[attr-defined]
+            {k: np.asarray(v) for k, v in problem.variables.items()},
+            np.asarray(problem.targets),
+            problem.catalog,
             config,
-            None if weights is None else np.asarray(weights),
+            None if problem.weights is None else np.asarray(problem.weights),
             None if op is None else (np.asarray(op.index), np.asarray(op.weight)),
-            None if getattr(problem, "groups", None) is None else np.asarray(problem.groups),
+            None if problem.groups is None else np.asarray(problem.groups),
         )
 
     # -- numerics --------------------------------------------------------------------------
@@ -525,7 +528,7 @@ class OfflineProposer:
             contract.function_name,
             contract.arguments,
             [e.render() for e in equations],
-            [f"d_{t}" if contract.loop == "DE" else f"{t}_" for t in contract.targets],
+            contract.outputs,
         )
         requests = self.variable_requests(contract, equations)
         answer = f"```python\n{source}```\n"
