@@ -275,3 +275,24 @@ def test_cli_diagnose_writes_the_report(damping_data, tmp_path):
     )
     assert done.returncode == 2 and "not Python" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_integral_operator_integrates_within_each_recording():
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import integral_operator
+
+    t = np.linspace(0.0, 2.0, 201)
+    dxdt = {"x": 3 * np.cos(3 * t)}
+    rec = [
+        Dataset.create(t, {"x": np.sin(3 * t) + k}, {"x": "state"}, derivatives=dxdt)
+        for k in (0, 5)
+    ]
+    op, ends = integral_operator(rec, width=0.5)
+    x = np.concatenate([ds["x"] for ds in rec])
+    dx = np.concatenate([ds.derivative("x") for ds in rec])
+    increments = x[ends[:, 1]] - x[ends[:, 0]]
+    assert np.max(np.abs(np.asarray(op(jnp.asarray(dx))) - increments)) < 1e-3  # trapezoid
+    assert np.all((ends[:, 0] < 201) == (ends[:, 1] < 201))  # no window spans two recordings
+    assert np.all(ends[:, 1] > ends[:, 0])
+    with pytest.raises(ValueError, match="positive"):
+        integral_operator(rec, width=0.0)
