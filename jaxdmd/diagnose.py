@@ -278,11 +278,11 @@ class Cause:
     ``none`` (the model agrees with the data within what can be told from them)."""
 
     kind: str
-    equation: str | None
-    term: str | None
-    variables: tuple[str, ...]
-    explained: float
     summary: str
+    equation: str | None = None
+    term: str | None = None
+    variables: tuple[str, ...] = ()
+    explained: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -340,6 +340,7 @@ class Diagnosis:
     extension_rounds: int = 0
     joined: tuple[str, ...] = ()
     wall_time_s: float = 0.0
+    window: float | None = None  # s, the integral form's window (None: derivatives)
 
     @property
     def gain(self) -> float:
@@ -381,6 +382,7 @@ class Diagnosis:
             "coefficients": self.coefficients,
             "extension": {"rounds": self.extension_rounds, "joined": list(self.joined)},
             "wall_time_s": self.wall_time_s,
+            "window_s": self.window,
         }
 
 
@@ -634,6 +636,52 @@ def _check_data(model: UserModel, datasets: Sequence[Dataset]) -> None:
         )
 
 
+def _cause(
+    ranking: dict[str, tuple[Candidate, ...]],
+    flagged: Sequence[Candidate],
+    held_metrics: dict[str, dict[str, Any]],
+    nmse: dict[str, dict[str, float]],
+    config: DiagnoseConfig,
+) -> Cause:
+    """The verdict: a structural cause if a term explains enough, else parameters, else none."""
+    if flagged:
+        eq_name = flagged[0].equation
+        pick = _simplest([c for c in ranking[eq_name] if c.explained > 0])
+        what = f"variable {', '.join(pick.new_variables)}" if pick.new_variables else "a term"
+        return Cause(
+            kind="missing variable" if pick.new_variables else "missing term",
+            summary=(
+                f"the d{eq_name}/dt equation lacks {what}: adding {pick.term}"
+                f"{' with an offset' if pick.offset else ''} removes "
+                f"{pick.explained:.0%} of its residual on data it was not fitted to"
+            ),
+            equation=eq_name,
+            term=pick.term,
+            variables=pick.new_variables or pick.variables,
+            explained=pick.explained,
+        )
+    before, refit = held_metrics.get("given"), held_metrics["refit"]
+    if before is not None and before["nrmse"] > config.parameter_gain * refit["nrmse"]:
+        ratio = before["nrmse"] / max(refit["nrmse"], 1e-300)
+        worst = max(nmse["refit"], key=lambda s: nmse["given"][s] / max(nmse["refit"][s], 1e-300))
+        return Cause(
+            kind="parameter",
+            summary=(
+                f"the structure fits: refitting the parameters alone cuts the held-out error "
+                f"{ratio:.1f}x (most in the d{worst}/dt equation), and no term explains "
+                f"{config.threshold:.0%} of what is left"
+            ),
+            equation=worst,
+        )
+    return Cause(
+        kind="none",
+        summary=(
+            f"no term explains {config.threshold:.0%} of any equation's residual out of "
+            "sample; the model agrees with the data as far as they can tell"
+        ),
+    )
+
+
 def diagnose(
     train: Sequence[Dataset],
     model: UserModel,
@@ -698,53 +746,7 @@ def diagnose(
         (c for cands in ranking.values() for c in cands[:1] if c.explained >= config.threshold),
         key=lambda c: -c.explained,
     )
-    cause: Cause
-    if flagged:
-        eq_name = flagged[0].equation
-        pick = _simplest([c for c in ranking[eq_name] if c.explained > 0])
-        kind = "missing variable" if pick.new_variables else "missing term"
-        what = f"variable {', '.join(pick.new_variables)}" if pick.new_variables else "a term"
-        cause = Cause(
-            kind=kind,
-            equation=eq_name,
-            term=pick.term,
-            variables=pick.new_variables or pick.variables,
-            explained=pick.explained,
-            summary=(
-                f"the d{eq_name}/dt equation lacks {what}: adding {pick.term}"
-                f"{' with an offset' if pick.offset else ''} removes "
-                f"{pick.explained:.0%} of its residual on data it was not fitted to"
-            ),
-        )
-    elif given is not None and (
-        held_metrics["given"]["nrmse"] > config.parameter_gain * held_metrics["refit"]["nrmse"]
-    ):
-        worst = max(states, key=lambda s: nmse["given"][s] / max(nmse["refit"][s], 1e-300))
-        ratio = held_metrics["given"]["nrmse"] / max(held_metrics["refit"]["nrmse"], 1e-300)
-        cause = Cause(
-            kind="parameter",
-            equation=worst,
-            term=None,
-            variables=(),
-            explained=0.0,
-            summary=(
-                f"the structure fits: refitting the parameters alone cuts the held-out error "
-                f"{ratio:.1f}x (most in the d{worst}/dt equation), and no term explains "
-                f"{config.threshold:.0%} of what is left"
-            ),
-        )
-    else:
-        cause = Cause(
-            kind="none",
-            equation=None,
-            term=None,
-            variables=(),
-            explained=0.0,
-            summary=(
-                f"no term explains {config.threshold:.0%} of any equation's residual out of "
-                "sample; the model agrees with the data as far as they can tell"
-            ),
-        )
+    cause = _cause(ranking, flagged, held_metrics, nmse, config)
     also = tuple(c for c in flagged if c.equation != cause.equation)
 
     # 4. the extension
@@ -802,6 +804,7 @@ def diagnose(
         extension_rounds=rounds,
         joined=joined,
         wall_time_s=time.perf_counter() - start,
+        window=config.window,
     )
 
 
@@ -992,7 +995,12 @@ def report_markdown(d: Diagnosis) -> str:
         )
     out += ["", "## Evidence", "", "![evidence](evidence.png)", ""]
     out += [
-        "Fit of each state equation (NMSE of the derivative on the training data):",
+        "Fit of each state equation on the training data (NMSE of "
+        + (
+            f"the increments over {d.window:g} s windows, the integral form):"
+            if d.window
+            else "the derivatives):"
+        ),
         "",
         "| equation | " + " | ".join(d.nmse) + " |",
         "|---|" + "---|" * len(d.nmse),
