@@ -520,12 +520,17 @@ def _variables_of(problem: Problem):
     return (*extra, *problem.catalog)
 
 
-def _simplest(candidates: Sequence[Candidate], tolerance: float = 0.01) -> Candidate:
-    """The simplest term within ``tolerance`` (relative) of the best share."""
-    best = candidates[0].explained
-    close = [c for c in candidates if c.explained >= best * (1 - tolerance)]
-    # a tie goes to the term that needs no new measurement, then to the simpler one
-    return min(close, key=lambda c: (len(c.new_variables), len(c.variables), -c.explained))
+def _simplest(candidates: Sequence[Candidate], tolerance: float = 0.05) -> Candidate:
+    """The simplest of the terms that tie with the best one.
+
+    A tie: the held-out error left with the term is within ``tolerance`` (relative) of the error
+    left with the best term (the parsimony rule of :func:`jaxdmd.search.final_equations`). Among
+    ties, the term that needs no new measurement wins, then the one with fewer factors (a scaled
+    copy ``x * c`` of a term ``x`` with a nearly constant ``c`` ties with ``x``), then the better.
+    """
+    left = 1.0 - candidates[0].explained
+    ties = [c for c in candidates if 1.0 - c.explained <= left * (1 + tolerance)]
+    return min(ties, key=lambda c: (len(c.new_variables), c.term.count(" * "), -c.explained))
 
 
 def locate_errors(sim: RolloutResult, meas: Dataset, states: Sequence[str]) -> dict[str, Any]:
