@@ -112,10 +112,23 @@ def de_problem(
 
 
 def ae_problem(
-    datasets: Sequence[Dataset], de_contract: Contract, system: str = "synchronous generator"
+    datasets: Sequence[Dataset],
+    de_contract: Contract,
+    system: str = "synchronous generator",
+    *,
+    smooth: bool = False,
 ) -> tuple[Problem, Contract]:
-    """The AE loop's problem: explicit equations for the algebraic variables the DE loop uses."""
+    """The AE loop's problem: explicit equations for the algebraic variables the DE loop uses.
+
+    With ``smooth``, the states (the AE loop's regressors) are replaced by their smoothed
+    estimates (the derivative estimator's, ``Dataset.with_estimated_derivatives(smooth=True)``).
+    For noisy states this matters: an algebraic equation such as a stator current amplifies the
+    noise of its regressors (by 1/x'' for a machine), and least squares on noisy regressors
+    shrinks and mixes the coefficients (errors in variables); smoothing cuts that noise.
+    """
     datasets = list(datasets)
+    if smooth:
+        datasets = [ds.with_estimated_derivatives(smooth=True) for ds in datasets]
     first = datasets[0]
     targets = tuple(v.name for v in de_contract.library if v.role == "algebraic")
     if not targets:

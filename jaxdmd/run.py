@@ -336,7 +336,9 @@ def discover(args: argparse.Namespace) -> int:
     ae = ae_state = None
     ae_seconds = 0.0
     if not args.skip_ae:
-        ae_state, ae, ae_seconds = loop("AE", *ae_problem(train, de.contract), ae_key)
+        ae_state, ae, ae_seconds = loop(
+            "AE", *ae_problem(train, de.contract, smooth=matched), ae_key
+        )
 
     discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
     summary: dict[str, object] = {
