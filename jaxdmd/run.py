@@ -76,6 +76,11 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not offer the per-equation recombination of the best lines each round",
     )
+    g.add_argument(
+        "--unweighted",
+        action="store_true",
+        help="do not weight the DE samples by the inverse noise of the derivative estimates",
+    )
     g.add_argument("--skip-ae", action="store_true", help="run the DE loop only")
     g.add_argument("--resume", metavar="DIR", help="continue the run saved in DIR")
     try:
@@ -280,6 +285,7 @@ _RUN_KEYS = (
     "tau_l",
     "seed",
     "no_recombine",
+    "unweighted",
     "skip_ae",
 )
 
@@ -289,7 +295,7 @@ def discover(args: argparse.Namespace) -> int:
         out = Path(args.resume)
         saved = json.loads((out / "run.json").read_text())
         for k in _RUN_KEYS:
-            setattr(args, k, saved[k])
+            setattr(args, k, saved.get(k, getattr(args, k)))  # a newer option: its default
     else:
         out = Path(args.out or DEFAULT_OUT)
         out.mkdir(parents=True, exist_ok=True)
@@ -332,7 +338,10 @@ def discover(args: argparse.Namespace) -> int:
         return state, search.final_equations(state), time.perf_counter() - start
 
     matched = not (args.data and args.given_derivatives)
-    de_state, de, de_seconds = loop("DE", *de_problem(train, matched=matched), de_key)
+    weighted = matched and not args.unweighted
+    de_state, de, de_seconds = loop(
+        "DE", *de_problem(train, matched=matched, weighted=weighted), de_key
+    )
     ae = ae_state = None
     ae_seconds = 0.0
     if not args.skip_ae:

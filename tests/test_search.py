@@ -250,3 +250,20 @@ def test_ae_problem_smooths_the_noisy_states_only():
     noise_raw = np.std(np.asarray(raw.variables["x"]) - x)
     noise_smooth = np.std(np.asarray(smooth.variables["x"]) - x)
     assert noise_smooth < 0.4 * noise_raw
+
+
+def test_noise_weights_follow_the_estimator():
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import de_problem, noise_weights
+
+    t = np.linspace(0, 10, 1001)
+    rng = np.random.default_rng(1)
+    ds = Dataset.create(
+        t, {"x": np.sin(t) + 0.01 * rng.normal(size=t.size)}, {"x": "state"}, events=(1.0, 1.1)
+    )
+    w = noise_weights([ds, ds])
+    assert w.shape == (2002,) and w.mean() == pytest.approx(1.0)
+    after = (t >= 1.0) & (t < 1.15)
+    assert w[:1001][after].max() < 0.3 * np.median(w)  # short windows after an event: noisy
+    problem, _ = de_problem([ds], matched=True, weighted=True)
+    assert problem.weights is not None and problem.weights.shape == (1001,)

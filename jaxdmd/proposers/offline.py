@@ -303,14 +303,20 @@ class OfflineProposer:
         n = targets.shape[1]
         stride = max(1, int(np.ceil(n / self.config.max_samples)))
         index = np.arange(0, n, stride)
+        w = None
         if weights is not None:
-            index = index[np.asarray(weights)[index] > 0]
+            w = np.asarray(weights, dtype=float)
+            w = w.reshape(-1, w.shape[-1]).mean(axis=0) if w.ndim > 1 else w
+            w = np.broadcast_to(w, (n,))
+            index = index[w[index] > 0]
         # terms are evaluated on all samples (the operator mixes neighbours), then subsampled
         self.full = {k: np.asarray(v, dtype=float) for k, v in variables.items()}
         self.data = {k: v[index] for k, v in self.full.items()}
         self.index = index
         self.operator = operator
-        self.targets = targets[:, index]
+        # weighted least squares throughout: rows scaled by the square roots of the weights
+        self.root_w = np.ones(len(index)) if w is None else np.sqrt(w[index])
+        self.targets = targets[:, index] * self.root_w
         # recordings of the subsample: terms are admitted by their leave-one-recording-out error
         self.groups = None if groups is None else np.asarray(groups)[index]
         if self.groups is not None and len(np.unique(self.groups)) < 2:
@@ -346,7 +352,7 @@ class OfflineProposer:
                 if self.operator is not None:
                     index, weight = self.operator
                     value = np.sum(value[index] * weight, axis=1)
-                value = value[self.index]
+                value = value[self.index] * self.root_w
                 ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
                 self._cache[term] = value if ok else None
             except (ValueError, KeyError, TypeError, ZeroDivisionError):
