@@ -77,9 +77,9 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         help="do not offer the per-equation recombination of the best lines each round",
     )
     g.add_argument(
-        "--unweighted",
+        "--weighted",
         action="store_true",
-        help="do not weight the DE samples by the inverse noise of the derivative estimates",
+        help="weight the DE samples by the inverse noise of the derivative estimates",
     )
     g.add_argument("--skip-ae", action="store_true", help="run the DE loop only")
     g.add_argument("--resume", metavar="DIR", help="continue the run saved in DIR")
@@ -285,7 +285,7 @@ _RUN_KEYS = (
     "tau_l",
     "seed",
     "no_recombine",
-    "unweighted",
+    "weighted",
     "skip_ae",
 )
 
@@ -338,7 +338,7 @@ def discover(args: argparse.Namespace) -> int:
         return state, search.final_equations(state), time.perf_counter() - start
 
     matched = not (args.data and args.given_derivatives)
-    weighted = matched and not args.unweighted
+    weighted = matched and args.weighted
     de_state, de, de_seconds = loop(
         "DE", *de_problem(train, matched=matched, weighted=weighted), de_key
     )
