@@ -145,7 +145,7 @@ def main(argv=None) -> dict:
     out: dict = {"settings": vars(args)}
 
     # ---- DE: the true structure, matched fit on the noisy training data (as the run fits),
-    # unweighted and weighted by the inverse noise of the derivative estimates (the default)
+    # unweighted (the run's default) and weighted by the inverse noise of the estimates (--weighted)
     states = list(train[0].state_names)
     de_args = [*states, "i_d", "i_q", "P_e", "P_m", "v_f"]
     eqs = [[t for t, _ in TRUE_DE[s]] for s in states]
