@@ -170,6 +170,11 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         help="fit the state equations in their integral form over windows of this length "
         "(state increments instead of estimated derivatives)",
     )
+    g.add_argument(
+        "--weighted",
+        action="store_true",
+        help="weight the DE samples by the inverse noise of the derivative estimates",
+    )
     g.add_argument("--skip-ae", action="store_true", help="run the DE loop only")
     g.add_argument("--resume", metavar="DIR", help="continue the run saved in DIR")
     try:
@@ -374,6 +379,7 @@ _RUN_KEYS = (
     "tau_l",
     "seed",
     "no_recombine",
+    "weighted",
     "skip_ae",
     "integral",
 )
@@ -384,7 +390,7 @@ def discover(args: argparse.Namespace) -> int:
         out = Path(args.resume)
         saved = json.loads((out / "run.json").read_text())
         for k in _RUN_KEYS:
-            setattr(args, k, saved.get(k))
+            setattr(args, k, saved.get(k, getattr(args, k)))  # a newer option: its default
     else:
         out = Path(args.out or DEFAULT_OUT)
         out.mkdir(parents=True, exist_ok=True)
@@ -430,13 +436,16 @@ def discover(args: argparse.Namespace) -> int:
 
     integral = getattr(args, "integral", None)
     matched = not (args.data and args.given_derivatives) and integral is None
+    weighted = matched and args.weighted
     de_state, de, de_seconds = loop(
-        "DE", *de_problem(train, matched=matched, integral=integral), de_key
+        "DE", *de_problem(train, matched=matched, weighted=weighted, integral=integral), de_key
     )
     ae = ae_state = None
     ae_seconds = 0.0
     if not args.skip_ae:
-        ae_state, ae, ae_seconds = loop("AE", *ae_problem(train, de.contract), ae_key)
+        ae_state, ae, ae_seconds = loop(
+            "AE", *ae_problem(train, de.contract, smooth=matched), ae_key
+        )
 
     discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
     summary: dict[str, object] = {

@@ -456,12 +456,16 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
 
     Each line is refitted with one recording's samples weighted out (so a matched operator keeps
     its recordings intact) and scored on that recording; the held-out squared errors of all folds
-    are summed and normalised like the training NMSE. A line that fails scores ``inf``.
+    are summed (with the problem's sample weights) and normalised like the training NMSE. A line
+    that fails scores ``inf``.
     """
     problem = state.problem
     groups = np.asarray(problem.groups)
     target = np.asarray(problem.targets[j])
     var = float(np.var(target)) or 1.0
+    n = target.shape[0]
+    w = np.ones(n) if problem.weights is None else np.asarray(problem.weights, dtype=float)
+    w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
     sse = np.full(len(lines), np.inf)
     compiled: list[tuple[int, Skeleton]] = []
     for i, line in enumerate(lines):
@@ -484,7 +488,7 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
             target[None],
             key=jax.random.fold_in(state.key, 1000 + fold),
             config=state.config.fit,
-            weights=(~held).astype(float)[None],
+            weights=(w * ~held)[None],
             operator=problem.operator,
         )
         for (i, sk), result in zip(compiled, results, strict=True):
@@ -494,7 +498,7 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
             pred = sk(variables, jnp.asarray(result.params))[0]
             if problem.operator is not None:
                 pred = problem.operator(pred)
-            sse[i] += float(np.sum((np.asarray(pred)[held] - target[held]) ** 2))
+            sse[i] += float(np.sum(w[held] * (np.asarray(pred)[held] - target[held]) ** 2))
     return sse / (len(target) * var)
 
 

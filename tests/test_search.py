@@ -202,3 +202,68 @@ def test_term_grammar_is_generic():
         "def f(a, b, p):\n    return p[0] * a + p[1] * (b - 1) - p[2], a * p[3]\n"
     )
     assert eqs[0].terms == ("a", "(b - 1)", "1") and eqs[1].terms == ("a",)
+
+
+def test_boundary_phasor_is_requested_as_a_pair():
+    """A magnitude and an angle on the boundary are asked for together: their projections
+    V sin(a - theta), V cos(a - theta) exist only once both are in the library."""
+    rng = np.random.default_rng(0)
+    n = 600
+    a, theta = rng.uniform(-1, 1, size=(2, n))
+    V = rng.uniform(0.5, 1.5, size=n)
+    y = 3.0 * V * np.sin(a - theta) + 0.01 * rng.normal(size=n)
+    problem = search.Problem(
+        variables={k: jnp.asarray(v) for k, v in dict(a=a, V=V, theta=theta, y=y).items()},
+        targets=jnp.asarray(y)[None],
+        target_names=("y",),
+        catalog=(Variable("V", "boundary", "pu"), Variable("theta", "boundary", "rad")),
+    )
+    contract = Contract(
+        loop="AE", targets=("y",), states=(Variable("a", "state", "rad"),), function_name="g"
+    )
+    proposer = OfflineProposer.for_problem(problem)
+    (eq,) = parse_equations(search.linear_seed(contract))
+    names = [r["name"] for r in proposer.variable_requests(contract, [eq])]
+    assert sorted(names) == ["V", "theta"]
+
+
+def test_ae_problem_smooths_the_noisy_states_only():
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import ae_problem
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 10, 1001)
+    x = np.tanh(t - 3)
+    channels = {"x": x + 0.02 * rng.normal(size=t.size), "i": 2 * x, "V": 1 + 0 * t}
+    roles = {"x": "state", "i": "algebraic", "V": "boundary"}
+    ds = Dataset.create(t, channels, roles)
+    de = Contract(
+        loop="DE",
+        targets=("x",),
+        states=(Variable("x", "state"),),
+        library=(Variable("i", "algebraic"),),
+    )
+    raw, _ = ae_problem([ds], de)
+    smooth, contract = ae_problem([ds], de, smooth=True)
+    assert contract.targets == ("i",)
+    np.testing.assert_array_equal(np.asarray(smooth.targets), np.asarray(raw.targets))
+    noise_raw = np.std(np.asarray(raw.variables["x"]) - x)
+    noise_smooth = np.std(np.asarray(smooth.variables["x"]) - x)
+    assert noise_smooth < 0.4 * noise_raw
+
+
+def test_noise_weights_follow_the_estimator():
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import de_problem, noise_weights
+
+    t = np.linspace(0, 10, 1001)
+    rng = np.random.default_rng(1)
+    ds = Dataset.create(
+        t, {"x": np.sin(t) + 0.01 * rng.normal(size=t.size)}, {"x": "state"}, events=(1.0, 1.1)
+    )
+    w = noise_weights([ds, ds])
+    assert w.shape == (2002,) and w.mean() == pytest.approx(1.0)
+    after = (t >= 1.0) & (t < 1.15)
+    assert w[:1001][after].max() < 0.3 * np.median(w)  # short windows after an event: noisy
+    problem, _ = de_problem([ds], matched=True, weighted=True)
+    assert problem.weights is not None and problem.weights.shape == (1001,)

@@ -23,7 +23,9 @@ exploration), on a subsample of the data the proposer was built with. A term is 
 backward elimination keeps it, only if it lowers the equation's leave-one-recording-out error
 (when the data hold several recordings) by a few per cent: a term that only fits the noise of one
 recording does not help predict another. Variable requests rank the catalog variables outside
-the library by the explained share. Deterministic given the request's seed.
+the library by the explained share; a boundary phasor (a magnitude and an angle, both outside)
+is ranked as one candidate and requested as a pair, since its projections need both.
+Deterministic given the request's seed.
 """
 
 from __future__ import annotations
@@ -301,14 +303,20 @@ class OfflineProposer:
         n = targets.shape[1]
         stride = max(1, int(np.ceil(n / self.config.max_samples)))
         index = np.arange(0, n, stride)
+        w = None
         if weights is not None:
-            index = index[np.asarray(weights)[index] > 0]
+            w = np.asarray(weights, dtype=float)
+            w = w.reshape(-1, w.shape[-1]).mean(axis=0) if w.ndim > 1 else w
+            w = np.broadcast_to(w, (n,))
+            index = index[w[index] > 0]
         # terms are evaluated on all samples (the operator mixes neighbours), then subsampled
         self.full = {k: np.asarray(v, dtype=float) for k, v in variables.items()}
         self.data = {k: v[index] for k, v in self.full.items()}
         self.index = index
         self.operator = operator
-        self.targets = targets[:, index]
+        # weighted least squares throughout: rows scaled by the square roots of the weights
+        self.root_w = np.ones(len(index)) if w is None else np.sqrt(w[index])
+        self.targets = targets[:, index] * self.root_w
         # recordings of the subsample: terms are admitted by their leave-one-recording-out error
         self.groups = None if groups is None else np.asarray(groups)[index]
         if self.groups is not None and len(np.unique(self.groups)) < 2:
@@ -344,7 +352,7 @@ class OfflineProposer:
                 if self.operator is not None:
                     index, weight = self.operator
                     value = np.sum(value[index] * weight, axis=1)
-                value = value[self.index]
+                value = value[self.index] * self.root_w
                 ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
                 self._cache[term] = value if ok else None
             except (ValueError, KeyError, TypeError, ZeroDivisionError):
@@ -546,28 +554,40 @@ class OfflineProposer:
             return []
         base = (*contract.states, *contract.library)
         base_pool = set(term_pool(base, self.data))
-        # for every equation, the outside variable whose best term explains most of its error
-        per_equation: dict[int, tuple[float, Variable]] = {}
-        for v in outside:
-            pool = [t for t in term_pool((*base, v), self.data) if t not in base_pool]
+        # candidates: each outside variable, and each boundary phasor (a magnitude and an angle,
+        # both outside): its projections only exist once both are in, so it is judged as one
+        groups: list[tuple[Variable, ...]] = [(v,) for v in outside]
+        magnitudes = [v for v in outside if v.role == "boundary" and v.unit != "rad"]
+        angles = [v for v in outside if v.role == "boundary" and v.unit == "rad"]
+        groups += [(m, a) for m in magnitudes for a in angles]
+        # for every equation, the candidate whose best term explains most of its error
+        per_equation: dict[int, tuple[float, tuple[Variable, ...]]] = {}
+        for group in groups:
+            pool = [t for t in term_pool((*base, *group), self.data) if t not in base_pool]
             for j, eq in enumerate(equations):
                 terms = list(eq.terms) if eq.opaque is None else ["1"]
                 _, _, loss = self.solve(j, terms)
                 share = float(self.explained(j, terms, pool).max(initial=0.0)) * min(loss, 1.0)
-                if share > per_equation.get(j, (0.0, v))[0]:
-                    per_equation[j] = (share, v)
-        scores = sorted(((s, v, j) for j, (s, v) in per_equation.items()), key=lambda x: -x[0])
+                if share > per_equation.get(j, (0.0, group))[0]:
+                    per_equation[j] = (share, group)
+        scores = sorted(((s, g, j) for j, (s, g) in per_equation.items()), key=lambda x: -x[0])
+        out: list[dict[str, str]] = []
         seen: set[str] = set()
-        scores = [x for x in scores if not (x[1].name in seen or seen.add(x[1].name))]
-        out = []
-        for share, v, j in scores[: self.config.max_requests]:
-            if share < self.config.min_request_gain:
+        n_requests = 0
+        for share, group, j in scores:
+            if n_requests >= self.config.max_requests or share < self.config.min_request_gain:
                 break
-            out.append(
-                {
-                    "name": v.name,
-                    "role": v.role,
-                    "reason": f"explains {share:.1%} of the error of {contract.targets[j]}",
-                }
-            )
+            fresh = [v for v in group if v.name not in seen]
+            if not fresh:
+                continue
+            n_requests += 1
+            for v in fresh:
+                seen.add(v.name)
+                out.append(
+                    {
+                        "name": v.name,
+                        "role": v.role,
+                        "reason": f"explains {share:.1%} of the error of {contract.targets[j]}",
+                    }
+                )
         return out
