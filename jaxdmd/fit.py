@@ -73,6 +73,8 @@ import numpy as np
 import optax
 from jax import lax
 
+from jaxdmd import interp
+
 __all__ = ["FitConfig", "FitResult", "Operator", "fit_batch", "nmse"]
 
 Array = jax.Array
@@ -132,6 +134,8 @@ class FitConfig:
     combine_restarts: bool = True
     linear_shortcut: bool = True
     compiler_options: tuple[tuple[str, Any], ...] = (("xla_cpu_use_fusion_emitters", False),)
+    interpreter: bool = True
+    interpreter_chunk: int = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,11 +237,12 @@ def _losses(r: Array) -> Array:
 
 def _linearise(model, data, targets, scale, p):
     """Losses ``[K]``, ``J^T J`` ``[P, P]``, ``J^T r`` ``[P]`` and dependence ``[K, P]`` at p."""
+    return _linearise_fn(lambda q: _residual(model, data, targets, scale, q), p)
+
+
+def _linearise_fn(f: Callable[[Array], Array], p: Array):
+    """:func:`_linearise` for any residual function ``f(p) -> [K, N]``."""
     eye = jnp.eye(p.shape[0], dtype=p.dtype)
-
-    def f(q):
-        return _residual(model, data, targets, scale, q)
-
     r, jac = jax.vmap(lambda v: jax.jvp(f, (p,), (v,)), out_axes=(None, -1))(eye)  # J [K, N, P]
     jac = jnp.where(jnp.isfinite(jac), jac, 0.0)
     rf = jnp.where(jnp.isfinite(r), r, 0.0)
@@ -289,7 +294,7 @@ def _initial_params(model: _Model, key_data: np.ndarray, config: FitConfig) -> n
 
 def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
     """The jitted fit of a batch: ``(data, targets, scale, key) -> arrays``."""
-    n_restarts, n_out = config.restarts, n_outputs
+    n_out = n_outputs
     pmax = max(m.n_params for m in models)
 
     def evaluate_all(data, targets, scale, p):  # p [C, R, Pmax]
@@ -332,67 +337,87 @@ def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Cal
     def fit(data, targets, scale, p):
         if config.adam_steps > 0:
             p = adam(data, targets, scale, p)
-        shape = (len(models), n_restarts, n_out)
-        eye = jnp.eye(pmax)
+        return _levenberg_marquardt(
+            lambda q, need, prev: evaluate_all(data, targets, scale, q), p, n_out, config
+        )
 
-        def cond(s):
-            return (s["it"] < config.polish_steps + 1) & ~jnp.all(s["done"])
+    return _compiled_caller(jax.jit(fit), config)
 
-        def body(s):
-            dep = s["dep"]
-            active = ~s["done"]  # [C, R, K]
-            # parameter j of restart r moves if any active output depends on it
-            dep_r = dep[:, None, :, :]  # [C, 1, K, P]
-            move = jnp.any(dep_r & active[..., None], axis=2)  # [C, R, P]
-            lam_p = jnp.max(jnp.where(dep_r, s["lam"][..., None], 0.0), axis=2)  # [C, R, P]
-            d = jnp.diagonal(s["jtj"], axis1=-2, axis2=-1)
-            d = jnp.maximum(d, 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300)
-            mm = move[..., :, None] & move[..., None, :]
-            a = jnp.where(mm, s["jtj"] + (lam_p * d)[..., None] * eye, eye)
-            g = jnp.where(move, s["jtr"], 0.0)
-            dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), -g[..., None])
-            # the first pass evaluates the starting points themselves
-            p_try = jnp.where(move & (s["it"] > 0), s["p"] + dp[..., 0], s["p"])
-            loss_t, jtj_t, jtr_t, dep_t = evaluate_all(data, targets, scale, p_try)
-            dep_new = dep | dep_t
-            coupled = _closure(dep_new)
-            lg = _group_sum(coupled, s["loss"])
-            lg_t = _group_sum(coupled, loss_t)
-            first = s["it"] == 0
-            ok = (jnp.isfinite(lg_t) & (lg_t < lg) & active) | first  # [C, R, K]
-            acc_p = jnp.any(dep_new[:, None] & ok[..., None], axis=2) | first  # [C, R, P]
-            acc_pp = acc_p[..., :, None] & acc_p[..., None, :]
-            gain = (lg - lg_t) / jnp.where(lg > 0, lg, 1.0)
-            lam_new = jnp.where(ok, s["lam"] * config.damping_down, s["lam"] * config.damping_up)
-            lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
-            # a group is done when all of its outputs agree it is (damping is shared)
-            conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
-            conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
-            return {
-                "p": jnp.where(acc_p, p_try, s["p"]),
-                "loss": jnp.where(ok, loss_t, s["loss"]),
-                "jtj": jnp.where(acc_pp, jtj_t, s["jtj"]),
-                "jtr": jnp.where(acc_p, jtr_t, s["jtr"]),
-                "dep": dep_new,
-                "lam": lam_new,
-                "done": (s["done"] | conv) & ~first,
-                "it": s["it"] + 1,
-            }
 
-        init = {
-            "p": p,
-            "loss": jnp.full(shape, jnp.inf),
-            "jtj": jnp.broadcast_to(eye, (*shape[:2], pmax, pmax)),
-            "jtr": jnp.zeros((*shape[:2], pmax)),
-            "dep": jnp.zeros((len(models), n_out, pmax), dtype=bool),
-            "lam": jnp.full(shape, config.damping),
-            "done": jnp.zeros(shape, dtype=bool),
-            "it": jnp.zeros((), dtype=jnp.int32),
+def _levenberg_marquardt(evaluate_all: Callable, p: Array, n_out: int, config: FitConfig):
+    """The batched LM loop (module docstring, step 3) from ``p [C, R, Pmax]``.
+
+    ``evaluate_all(p, need, previous)`` returns losses ``[C, R, K]``, ``J^T J`` ``[C, R, P, P]``,
+    ``J^T r`` ``[C, R, P]`` and the dependence of outputs on parameters ``[C, K, P]``. It may skip
+    the outputs whose ``need [C, K]`` is False (their whole group has converged at every restart,
+    so none of their parameters moves) and return their ``previous [C, R, K]`` losses.
+    """
+    n_models, n_restarts, pmax = p.shape
+    shape = (n_models, n_restarts, n_out)
+    eye = jnp.eye(pmax)
+
+    def cond(s):
+        return (s["it"] < config.polish_steps + 1) & ~jnp.all(s["done"])
+
+    def body(s):
+        dep = s["dep"]
+        active = ~s["done"]  # [C, R, K]
+        # parameter j of restart r moves if any active output depends on it
+        dep_r = dep[:, None, :, :]  # [C, 1, K, P]
+        move = jnp.any(dep_r & active[..., None], axis=2)  # [C, R, P]
+        lam_p = jnp.max(jnp.where(dep_r, s["lam"][..., None], 0.0), axis=2)  # [C, R, P]
+        d = jnp.diagonal(s["jtj"], axis1=-2, axis2=-1)
+        d = jnp.maximum(d, 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300)
+        mm = move[..., :, None] & move[..., None, :]
+        a = jnp.where(mm, s["jtj"] + (lam_p * d)[..., None] * eye, eye)
+        g = jnp.where(move, s["jtr"], 0.0)
+        dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), -g[..., None])
+        # the first pass evaluates the starting points themselves
+        p_try = jnp.where(move & (s["it"] > 0), s["p"] + dp[..., 0], s["p"])
+        first = s["it"] == 0
+        group = _closure(dep)
+        need = jnp.any(group & jnp.any(active, axis=1)[:, None, :], axis=-1) | first
+        loss_t, jtj_t, jtr_t, dep_t = evaluate_all(p_try, need, s["loss"])
+        dep_new = dep | dep_t
+        coupled = _closure(dep_new)
+        lg = _group_sum(coupled, s["loss"])
+        lg_t = _group_sum(coupled, loss_t)
+        ok = (jnp.isfinite(lg_t) & (lg_t < lg) & active) | first  # [C, R, K]
+        acc_p = jnp.any(dep_new[:, None] & ok[..., None], axis=2) | first  # [C, R, P]
+        acc_pp = acc_p[..., :, None] & acc_p[..., None, :]
+        gain = (lg - lg_t) / jnp.where(lg > 0, lg, 1.0)
+        lam_new = jnp.where(ok, s["lam"] * config.damping_down, s["lam"] * config.damping_up)
+        lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
+        # a group is done when all of its outputs agree it is (damping is shared)
+        conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
+        conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
+        return {
+            "p": jnp.where(acc_p, p_try, s["p"]),
+            "loss": jnp.where(ok, loss_t, s["loss"]),
+            "jtj": jnp.where(acc_pp, jtj_t, s["jtj"]),
+            "jtr": jnp.where(acc_p, jtr_t, s["jtr"]),
+            "dep": dep_new,
+            "lam": lam_new,
+            "done": (s["done"] | conv) & ~first,
+            "it": s["it"] + 1,
         }
-        s = lax.while_loop(cond, body, init)
-        return s["p"], s["loss"], s["dep"], s["it"]
 
-    jitted = jax.jit(fit)
+    init = {
+        "p": p,
+        "loss": jnp.full(shape, jnp.inf),
+        "jtj": jnp.broadcast_to(eye, (*shape[:2], pmax, pmax)),
+        "jtr": jnp.zeros((*shape[:2], pmax)),
+        "dep": jnp.zeros((n_models, n_out, pmax), dtype=bool),
+        "lam": jnp.full(shape, config.damping),
+        "done": jnp.zeros(shape, dtype=bool),
+        "it": jnp.zeros((), dtype=jnp.int32),
+    }
+    s = lax.while_loop(cond, body, init)
+    return s["p"], s["loss"], s["dep"], s["it"]
+
+
+def _compiled_caller(jitted: Any, config: FitConfig) -> Callable:
+    """Call ``jitted``, compiling once per argument signature with ``config.compiler_options``."""
     compiled: dict[Any, Callable] = {}
 
     def call(*args: Any) -> Any:
@@ -415,6 +440,92 @@ def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Cal
 @functools.lru_cache(maxsize=16)
 def _cached_build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
     return _build(models, n_outputs, config)
+
+
+@functools.lru_cache(maxsize=32)
+def _interpreter_build(
+    n_regs: int, n_outputs: int, config: FitConfig, has_operator: bool
+) -> Callable:
+    """The ONE jitted fit of any batch of programs (see :mod:`jaxdmd.interp`).
+
+    Called as ``fn(code, X, targets, scale, op_index, op_weight, p)`` with ``code`` the packed
+    programs ``[C, L]``, ``X`` the variables ``[V, N]`` and ``p`` ``[C, R, P]``. Every shape is a
+    bucket (see :func:`_run_interpreter`), so the executable is reused from round to round; the
+    candidates are run one after the other (``lax.map``) so that the opcode of the interpreter's
+    ``lax.switch`` is never batched, restarts and Jacobian columns are vmapped.
+    """
+
+    def evaluate_all(code, pidx, X, targets, scale, op_index, op_weight, p, need, previous):
+        n_c, n_r, n_p = p.shape
+        n_l = pidx.shape[-1]
+        pmask = (pidx >= 0).astype(p.dtype)  # [C*K, Pl]
+        slot_k = jnp.tile(jnp.arange(n_outputs), n_c)
+        slot_c = jnp.repeat(jnp.arange(n_c), n_outputs)
+
+        def slot(args):
+            code_s, pidx_s, pmask_s, k, c, need_s, prev_s = args
+
+            def compute(_):
+                q = p[c][:, jnp.maximum(pidx_s, 0)] * pmask_s  # [R, Pl]
+                val, jac = jax.vmap(lambda qr: interp.run(code_s, X, qr, n_regs))(q)
+                val, jac = val[:, 0], jac[:, 0]  # [R, N], [R, Pl, N]
+                if has_operator:
+                    val = jnp.sum(val[..., op_index] * op_weight, axis=-1)
+                    jac = jnp.sum(jac[..., op_index] * op_weight, axis=-1)
+                r = (val - targets[k]) * scale[k]
+                jac = jac * (scale[k] * pmask_s[:, None])
+                jac = jnp.where(jnp.isfinite(jac), jac, 0.0)
+                rf = jnp.where(jnp.isfinite(r), r, 0.0)
+                jtj = jnp.einsum("rpn,rqn->rpq", jac, jac)
+                jtr = jnp.einsum("rpn,rn->rp", jac, rf)
+                dep = jnp.any(jnp.sum(jnp.abs(jac), axis=-1) > 0, axis=0)
+                return _losses(r), jtj, jtr, dep
+
+            def skip(_):
+                z = jnp.zeros((n_r, n_l), p.dtype)
+                return prev_s, z[:, :, None] * z[:, None, :], z, jnp.zeros((n_l,), bool)
+
+            return lax.cond(need_s, compute, skip, None)
+
+        prev = jnp.swapaxes(previous, 1, 2).reshape(n_c * n_outputs, n_r)
+        args = (code, pidx, pmask, slot_k, slot_c, need.reshape(-1), prev)
+        loss, jtj, jtr, dep = lax.map(slot, args)
+        # back to global parameter indices: one-hot [C, K, Pl, P]
+        onehot = (pidx[..., None] == jnp.arange(n_p)).astype(p.dtype)
+        onehot = onehot.reshape(n_c, n_outputs, n_l, n_p)
+        jtj = jtj.reshape(n_c, n_outputs, n_r, n_l, n_l)
+        jtr = jtr.reshape(n_c, n_outputs, n_r, n_l)
+        jtj = jnp.einsum("ckap,ckrab,ckbq->crpq", onehot, jtj, onehot)
+        jtr = jnp.einsum("ckap,ckra->crp", onehot, jtr)
+        dep = jnp.einsum("ckap,cka->ckp", onehot, dep.reshape(n_c, n_outputs, n_l)) > 0
+        loss = jnp.swapaxes(loss.reshape(n_c, n_outputs, n_r), 1, 2)
+        return loss, jtj, jtr, dep
+
+    def adam(evaluate, p):
+        schedule = optax.cosine_decay_schedule(config.learning_rate, config.adam_steps)
+        opt = optax.adam(schedule)
+
+        def step(carry, _):
+            q, state = carry
+            need = jnp.ones((q.shape[0], n_outputs), bool)
+            prev = jnp.zeros((*q.shape[:2], n_outputs), q.dtype)
+            g = 2.0 * evaluate(q, need, prev)[2]  # d(sum NMSE)/dp = 2 J^T r (non-finite: 0)
+            upd, state = opt.update(g, state, q)
+            q_new = q + upd
+            return (jnp.where(jnp.isfinite(q_new), q_new, q), state), None
+
+        (p, _), _ = lax.scan(step, (p, opt.init(p)), None, length=config.adam_steps)
+        return p
+
+    def fit(code, pidx, X, targets, scale, op_index, op_weight, p):
+        evaluate = functools.partial(
+            evaluate_all, code, pidx, X, targets, scale, op_index, op_weight
+        )
+        if config.adam_steps > 0:
+            p = adam(evaluate, p)
+        return _levenberg_marquardt(evaluate, p, n_outputs, config)
+
+    return _compiled_caller(jax.jit(fit), config)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -447,32 +558,53 @@ def _check(
     return model, None
 
 
+def _probes(n_params: int, seed: int) -> np.ndarray:
+    """``p = 0``, the unit vectors and two random points: ``[n_params + 3, n_params]``."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate(
+        [np.zeros((1, n_params)), np.eye(n_params), rng.normal(0, 3, (2, n_params))]
+    )
+
+
+def _check_program(
+    skeleton: SkeletonLike,
+    data: Mapping[str, np.ndarray],
+    n_outputs: int,
+    operator: Operator | None = None,
+) -> tuple[_Model | None, str | None]:
+    """:func:`_check` for a lowered skeleton: nothing to trace, only names and counts."""
+    arguments = tuple(skeleton.arguments)
+    missing = [a for a in arguments if a not in data]
+    if missing:
+        return None, f"unknown variable(s): {', '.join(missing)}"
+    if int(skeleton.n_outputs) != n_outputs:
+        return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+    seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
+    return _Model(skeleton.fn, arguments, max(1, int(skeleton.n_params)), seed, operator), None
+
+
 def _linear_fit(
-    model: _Model,
+    values_at: Callable[[np.ndarray], Any],
     n_params: int,
-    data: Mapping[str, Array],
+    seed: int,
     targets: np.ndarray,
     scale: np.ndarray,
     config: FitConfig,
 ) -> FitResult | None:
     """The exact fit of a candidate that is affine in ``p``; None if it is not affine.
 
-    The candidate is evaluated eagerly (op by op, nothing compiled for it) at ``p = 0`` and at the
-    unit vectors, which gives ``pred(p) = b + A p`` if it is affine; affinity is then verified at
-    two random points (relative tolerance 1e-9). The weighted least-squares problem
+    ``values_at(probes [B, P])`` returns the predictions ``[B, K, N]`` (operator applied). The
+    candidate is evaluated at ``p = 0`` and at the unit vectors (on the host in NumPy for a
+    lowered program, else eagerly op by op: nothing is compiled for it), which gives
+    ``pred(p) = b + A p`` if it is affine; affinity is then verified at two random points
+    (relative tolerance 1e-9). The weighted least-squares problem
     ``min_p sum_k sum_n scale[k, n]**2 (b + A p - target)[k, n]**2`` (the summed NMSE) is solved
     with column equilibration and an SVD (minimum-norm where terms are collinear). This is what
     Levenberg-Marquardt converges to in one step, without its compile.
     """
-    k_out = targets.shape[0]
-    rng = np.random.default_rng(model.seed)
-    probes = np.concatenate(
-        [np.zeros((1, n_params)), np.eye(n_params), rng.normal(0, 3, (2, n_params))]
-    )
+    probes = _probes(n_params, seed)
     try:
-        values = np.asarray(
-            jax.vmap(lambda q: _predict(model, data, q, k_out))(jnp.asarray(probes))
-        )
+        values = np.asarray(values_at(probes), dtype=np.float64)
     except Exception:  # leave it to the general path, which reports the reason
         return None
     if not np.all(np.isfinite(values)):
@@ -616,12 +748,25 @@ def fit_batch(
 
     results: list[FitResult | None] = [None] * len(skeletons)
     models: dict[int, _Model] = {}
+    programs: dict[int, interp.Program] = {}
     for i, sk in enumerate(skeletons):
-        model, error = _check(sk, data, tgt, scale, operator)
+        program = interp.program_of(sk) if config.interpreter else None
+        if program is not None:
+            model, error = _check_program(sk, data_np, n_outputs, operator)
+            if model is not None:
+                programs[i] = program
+        else:
+            model, error = _check(sk, data, tgt, scale, operator)
         if model is None:
             results[i] = _dropped(sk, n_outputs, error or "unknown error")
         else:
             models[i] = model
+
+    def finish(indices: list[int], out: Any) -> None:
+        p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
+        for j, i in enumerate(indices):
+            params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
+            results[i] = _result(int(skeletons[i].n_params), params, losses, loss[j], config)
 
     def run(indices: list[int]) -> None:
         batch = tuple(models[i] for i in indices)
@@ -631,26 +776,89 @@ def fit_batch(
         p0 = np.zeros((len(batch), config.restarts, pmax))
         for j, m in enumerate(batch):
             p0[j, :, : m.n_params] = _initial_params(m, key_data, config)
-        out = fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0))
-        p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
-        for j, i in enumerate(indices):
-            params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
-            results[i] = _result(int(skeletons[i].n_params), params, losses, loss[j], config)
+        finish(indices, fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0)))
+
+    features: dict[int, np.ndarray] = {}
+
+    def feature_values(i: int) -> np.ndarray:
+        if i not in features:
+            args = [data_np[a] for a in programs[i].arguments]
+            features[i] = programs[i].feature_values(args)
+        return features[i]
+
+    def run_programs(indices: list[int]) -> None:
+        chunk = max(1, config.interpreter_chunk)
+        pmax = interp.bucket(max(models[i].n_params for i in indices), 4)
+        parts_of = {i: programs[i].parts for i in indices}
+        n_local = interp.bucket(max(q.n_params for i in indices for q in parts_of[i]), 2)
+        n_regs = interp.bucket(max(q.n_regs for i in indices for q in parts_of[i]), 8)
+        fn = _interpreter_build(n_regs, n_outputs, config, operator is not None)
+        if operator is None:
+            op_index, op_weight = jnp.zeros((1, 1), jnp.int64), jnp.zeros((1, 1))
+        else:
+            op_index, op_weight = operator.index, operator.weight
+        chunks = [indices[s : s + chunk] for s in range(0, len(indices), chunk)]
+        n_rows = interp.bucket(max(sum(len(feature_values(i)) for i in c) for c in chunks), 16)
+        for part in chunks:
+            rows = [feature_values(i) for i in part]
+            offsets = np.cumsum([0] + [len(r) for r in rows])[:-1]
+            x = np.zeros((n_rows, n))
+            x[: sum(len(r) for r in rows)] = np.concatenate(rows)
+            slots = [q for i in part for q in parts_of[i]]
+            slot_offsets = [o for o, i in zip(offsets, part, strict=True) for _ in parts_of[i]]
+            code = interp.pack(slots, slot_offsets, interp.MAX_INSTRUCTIONS, chunk * n_outputs)
+            pidx = np.full((chunk * n_outputs, n_local), -1, np.int32)
+            for j, q in enumerate(slots):
+                pidx[j, : q.n_params] = q.params
+            p0 = np.zeros((chunk, config.restarts, pmax))
+            for j, i in enumerate(part):
+                p0[j, :, : models[i].n_params] = _initial_params(models[i], key_data, config)
+            code_j = {k: jnp.asarray(v) for k, v in code.items()}
+            args = (jnp.asarray(x), tgt, scale, op_index, op_weight, jnp.asarray(p0))
+            finish(part, fn(code_j, jnp.asarray(pidx), *args))
+
+    def values_at(i: int) -> Callable[[np.ndarray], Any]:
+        if i in programs:
+            def numpy_values(probes: np.ndarray) -> np.ndarray:
+                values = interp.evaluate_numpy(programs[i], list(feature_values(i)), probes)
+                if operator is None:
+                    return values
+                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
+                return np.sum(values[..., index] * weight, axis=-1)
+
+            return numpy_values
+        model = models[i]
+        return lambda probes: jax.vmap(lambda q: _predict(model, data, q, n_outputs))(
+            jnp.asarray(probes)
+        )
 
     key_data = np.asarray(jax.random.key_data(key))
     if config.linear_shortcut:
         for i in list(models):
-            fitted = _linear_fit(models[i], models[i].n_params, data, targets_np, scale_np, config)
+            m = models[i]
+            fitted = _linear_fit(values_at(i), m.n_params, m.seed, targets_np, scale_np, config)
             if fitted is not None:
                 n_real = int(skeletons[i].n_params)
                 results[i] = dataclasses.replace(fitted, params=fitted.params[:n_real])
                 del models[i]
-    if models:
+    lowered = [i for i in models if i in programs]
+    if lowered:
         try:
-            run(list(models))
+            run_programs(lowered)
+        except Exception:  # the interpreter failed (a bug): fit these through their functions
+            for i in lowered:
+                del programs[i]
+                model, error = _check(skeletons[i], data, tgt, scale, operator)
+                if model is None:
+                    results[i] = _dropped(skeletons[i], n_outputs, error or "unknown error")
+                    del models[i]
+    rest = [i for i in models if i not in programs]
+    if rest:
+        try:
+            run(rest)
         except Exception:
             # a candidate broke the fused compile or run: fit one by one to isolate it
-            for i in models:
+            for i in rest:
                 try:
                     run([i])
                 except Exception as exc:
