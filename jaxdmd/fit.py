@@ -108,6 +108,10 @@ class FitConfig:
         damping_down: factor on ``lambda`` after an accepted step.
         max_damping: a fit whose ``lambda`` exceeds this is considered converged (stuck).
         ftol: converged when an accepted step lowers the group's loss by less than this fraction.
+        xtol: converged when the step just tried (accepted or not) changes every parameter of
+            the group by less than this fraction (a stationary point: without it, a converged
+            fit spends ~19 rejected steps raising the damping to ``max_damping``). Outputs that
+            depend on no parameter are converged from the start.
         max_nmse: a candidate whose mean NMSE exceeds this is dropped as diverged.
         combine_restarts: choose the best restart per group of separable outputs (else the best
             restart of the candidate as a whole).
@@ -130,6 +134,7 @@ class FitConfig:
     damping_down: float = 0.1
     max_damping: float = 1e16
     ftol: float = 1e-8
+    xtol: float = 1e-10
     max_nmse: float = 1e6
     combine_restarts: bool = True
     linear_shortcut: bool = True
@@ -390,6 +395,10 @@ def _levenberg_marquardt(evaluate_all: Callable, p: Array, n_out: int, config: F
         lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
         # a group is done when all of its outputs agree it is (damping is shared)
         conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
+        # the step just tried was negligible for every parameter of the output: stationary
+        rel = jnp.abs(p_try - s["p"]) / (jnp.abs(s["p"]) + 1e-300)  # [C, R, P]
+        big = jnp.any(dep_new[:, None] & (rel > config.xtol)[:, :, None, :], axis=-1)
+        conv = conv | (~big & ~first) | ~jnp.any(dep_new, axis=-1)[:, None, :]
         conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
         return {
             "p": jnp.where(acc_p, p_try, s["p"]),
@@ -416,15 +425,21 @@ def _levenberg_marquardt(evaluate_all: Callable, p: Array, n_out: int, config: F
     return s["p"], s["loss"], s["dep"], s["it"]
 
 
-def _compiled_caller(jitted: Any, config: FitConfig) -> Callable:
-    """Call ``jitted``, compiling once per argument signature with ``config.compiler_options``."""
+def _compiled_caller(jitted: Any, config: FitConfig, export_key: str | None = None) -> Callable:
+    """Call ``jitted``, compiling once per argument signature with ``config.compiler_options``.
+
+    With ``export_key`` and JAX's persistent compilation cache configured
+    (``jax_compilation_cache_dir``), the traced and lowered function is also stored there with
+    ``jax.export`` so that a later process skips tracing and lowering as well as compiling.
+    """
     compiled: dict[Any, Callable] = {}
 
     def call(*args: Any) -> Any:
         sig = jax.tree.map(lambda x: (x.shape, x.dtype), args)
         sig = (jax.tree.structure(args), tuple(jax.tree.leaves(sig)))
         if sig not in compiled:
-            lowered = jitted.lower(*args)
+            lowered = _exported(jitted, args, export_key, sig) if export_key else None
+            lowered = lowered or jitted.lower(*args)
             options = dict(config.compiler_options)
             try:
                 compiled[sig] = lowered.compile(options or None)
@@ -435,6 +450,40 @@ def _compiled_caller(jitted: Any, config: FitConfig) -> Callable:
         return compiled[sig](*args)
 
     return call
+
+
+def _exported(jitted: Any, args: tuple, key: str, sig: Any) -> Any:
+    """``jitted`` lowered through a ``jax.export`` kept in the persistent cache directory."""
+    cache_dir = jax.config.jax_compilation_cache_dir
+    if not cache_dir:
+        return None
+    import hashlib
+    import pathlib
+
+    sources = b"".join(pathlib.Path(m.__file__).read_bytes() for m in (interp, _this_module()))
+    digest = hashlib.sha256(
+        repr((key, str(sig), jax.__version__)).encode() + sources
+    ).hexdigest()[:32]
+    path = pathlib.Path(cache_dir) / f"jaxdmd-fit-{digest}.jaxexport"
+    try:
+        if path.exists():
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        else:
+            blob = jax.export.export(jitted)(*args).serialize()
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{np.random.randint(1 << 30)}")
+            tmp.write_bytes(blob)
+            tmp.replace(path)
+            exported = jax.export.deserialize(blob)
+        return jax.jit(exported.call).lower(*args)
+    except Exception:  # no flatbuffers, an unreadable or incompatible file: trace as usual
+        return None
+
+
+def _this_module() -> Any:
+    import sys
+
+    return sys.modules[__name__]
 
 
 @functools.lru_cache(maxsize=16)
@@ -467,7 +516,7 @@ def _interpreter_build(
 
             def compute(_):
                 q = p[c][:, jnp.maximum(pidx_s, 0)] * pmask_s  # [R, Pl]
-                val, jac = jax.vmap(lambda qr: interp.run(code_s, X, qr, n_regs))(q)
+                val, jac = interp.run(code_s, X, q, n_regs)
                 val, jac = val[:, 0], jac[:, 0]  # [R, N], [R, Pl, N]
                 if has_operator:
                     val = jnp.sum(val[..., op_index] * op_weight, axis=-1)
@@ -525,7 +574,8 @@ def _interpreter_build(
             p = adam(evaluate, p)
         return _levenberg_marquardt(evaluate, p, n_outputs, config)
 
-    return _compiled_caller(jax.jit(fit), config)
+    key = repr(("interpreter", n_regs, n_outputs, config, has_operator))
+    return _compiled_caller(jax.jit(fit), config, export_key=key)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -564,6 +614,70 @@ def _probes(n_params: int, seed: int) -> np.ndarray:
     return np.concatenate(
         [np.zeros((1, n_params)), np.eye(n_params), rng.normal(0, 3, (2, n_params))]
     )
+
+
+_EMPTY = interp.Program(
+    arguments=(), n_params=0, ops=np.zeros(0, np.int32), a=np.zeros(0, np.int32),
+    b=np.zeros(0, np.int32), c=np.zeros(0, np.int32), dst=np.zeros(0, np.int32),
+    imm=np.zeros(0), outputs=np.zeros(1, np.int32), n_regs=1, params=np.zeros(0, np.int32),
+)  # fmt: skip
+
+
+def _affine_groups(
+    program: interp.Program,
+    rows: np.ndarray,
+    seed: int,
+    targets: np.ndarray,
+    scale: np.ndarray,
+    operator: Operator | None,
+    config: FitConfig,
+) -> list[tuple[list[int], list[int], np.ndarray, np.ndarray]]:
+    """The groups of outputs (linked by shared parameters) that are affine in their parameters,
+    each solved exactly by :func:`_linear_fit`: ``(outputs, parameters, values, losses)``.
+
+    The outputs of a candidate that share no parameter are separate least-squares problems, so
+    the linear shortcut applies to each group on its own; only the other groups are left to the
+    Levenberg-Marquardt loop (their slots in the interpreter are empty).
+    """
+    parts = program.parts
+    group = list(range(len(parts)))
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            k = group[k]
+        return k
+
+    owner: dict[int, int] = {}
+    for k, part in enumerate(parts):
+        for g in part.params.tolist():
+            if g in owner:
+                group[root(k)] = root(owner[g])
+            else:
+                owner[g] = k
+    found = []
+    for r in sorted({root(k) for k in range(len(parts))}):
+        outs = [k for k in range(len(parts)) if root(k) == r]
+        cols = sorted({g for k in outs for g in parts[k].params.tolist()})
+        if not cols:
+            continue
+        position = {g: j for j, g in enumerate(cols)}
+
+        def values(probes: np.ndarray, outs=outs, position=position) -> np.ndarray:
+            out = []
+            for k in outs:
+                local = [position[g] for g in parts[k].params.tolist()]
+                q = probes[:, local] if local else np.zeros((probes.shape[0], 1))
+                out.append(interp.evaluate_numpy(parts[k], list(rows), q)[:, 0])
+            v = np.stack(out, axis=1)
+            if operator is not None:
+                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
+                v = np.sum(v[..., index] * weight, axis=-1)
+            return v
+
+        fitted = _linear_fit(values, len(cols), seed, targets[outs], scale[outs], config)
+        if fitted is not None:
+            found.append((outs, cols, fitted.params, fitted.losses))
+    return found
 
 
 def _check_program(
@@ -762,11 +876,20 @@ def fit_batch(
         else:
             models[i] = model
 
+    # groups of outputs of a lowered candidate that are affine in their own parameters:
+    # candidate -> [(outputs, parameters, exact parameters, exact losses)]
+    exact: dict[int, list[tuple[list[int], list[int], np.ndarray, np.ndarray]]] = {}
+
     def finish(indices: list[int], out: Any) -> None:
         p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
         for j, i in enumerate(indices):
             params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
-            results[i] = _result(int(skeletons[i].n_params), params, losses, loss[j], config)
+            restarts = loss[j].copy()
+            for outs, cols, exact_params, exact_losses in exact.get(i, []):
+                params[cols] = exact_params
+                losses[outs] = exact_losses
+                restarts[:, outs] = exact_losses
+            results[i] = _result(int(skeletons[i].n_params), params, losses, restarts, config)
 
     def run(indices: list[int]) -> None:
         batch = tuple(models[i] for i in indices)
@@ -804,7 +927,12 @@ def fit_batch(
             offsets = np.cumsum([0] + [len(r) for r in rows])[:-1]
             x = np.zeros((n_rows, n))
             x[: sum(len(r) for r in rows)] = np.concatenate(rows)
-            slots = [q for i in part for q in parts_of[i]]
+            solved = {i: {k for outs, *_ in exact.get(i, []) for k in outs} for i in part}
+            slots = [
+                _EMPTY if k in solved[i] else q
+                for i in part
+                for k, q in enumerate(parts_of[i])
+            ]
             slot_offsets = [o for o, i in zip(offsets, part, strict=True) for _ in parts_of[i]]
             code = interp.pack(slots, slot_offsets, interp.MAX_INSTRUCTIONS, chunk * n_outputs)
             pidx = np.full((chunk * n_outputs, n_local), -1, np.int32)
@@ -842,6 +970,12 @@ def fit_batch(
                 results[i] = dataclasses.replace(fitted, params=fitted.params[:n_real])
                 del models[i]
     lowered = [i for i in models if i in programs]
+    if config.linear_shortcut:
+        for i in lowered:
+            exact[i] = _affine_groups(
+                programs[i], feature_values(i), models[i].seed, targets_np, scale_np, operator,
+                config,
+            )  # fmt: skip
     if lowered:
         try:
             run_programs(lowered)

@@ -550,7 +550,8 @@ def _balanced(x: jax.Array, ans: jax.Array, y: jax.Array) -> jax.Array:
 
 
 def _dual_branches() -> list[Callable[..., tuple[jax.Array, ...]]]:
-    """One function per opcode: ``(x, y, z, imm, i, X, p) -> (value, dx, dy, dz)``, the value and
+    """One function per opcode: ``(x, y, z, imm, i, X, p) -> (value, dx, dy, dz)`` on ``[R, N]``
+    (``p`` is ``[R, P]``, ``X`` ``[F, N]``): the value and
     its partial derivatives with respect to the three operands (the derivative rules of
     ``jax.lax``, so that the result matches ``jax.jvp`` of the compiled skeleton)."""
     zero = jnp.zeros_like
@@ -605,8 +606,8 @@ def _dual_branches() -> list[Callable[..., tuple[jax.Array, ...]]]:
     one = jnp.ones_like
     table: dict[str, Callable[..., tuple[jax.Array, ...]]] = {
         "nop": leaf(lambda x, imm, i, X, p: x),
-        "var": leaf(lambda x, imm, i, X, p: X[i]),
-        "param": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(p[i], x.shape)),
+        "var": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(X[i][None, :], x.shape)),
+        "param": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(p[:, i][:, None], x.shape)),
         "const": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(imm, x.shape)),
         "neg": u(jnp.negative, lambda x, v: -one(x)),
         "add": b(jnp.add, lambda x, y, v: one(x), lambda x, y, v: one(x)),
@@ -660,21 +661,28 @@ _BRANCHES = _dual_branches()
 def run(
     code: dict[str, jax.Array], X: jax.Array, p: jax.Array, n_regs: int
 ) -> tuple[jax.Array, jax.Array]:
-    """Run one program with forward-mode derivatives.
+    """Run one program with forward-mode derivatives, for one or several parameter vectors.
 
     ``code`` holds the padded arrays ``ops a b c dst imm [L]``, ``outputs [K]`` and ``length``
-    (scalar); ``X`` ``[F, N]`` the rows the ``var`` instructions read (padded), ``p`` ``[P]``.
-    Returns the outputs ``[K, N]`` and their Jacobian ``[K, P, N]`` with respect to ``p``.
+    (scalar); ``X`` ``[F, N]`` the rows the ``var`` instructions read (padded), ``p`` ``[P]`` or
+    ``[R, P]`` (restarts). Returns the outputs ``[(R,) K, N]`` and their Jacobian
+    ``[(R,) K, P, N]`` with respect to ``p``.
 
     Each instruction computes its value and the partial derivatives with respect to its operands
-    (in the ``lax.switch``, on ``[N]``), then the tangent ``[P, N]`` as the chain rule's sum.
+    (in the ``lax.switch``, on ``[R, N]``), then the tangent ``[R, P, N]`` as the chain rule's sum.
     A tangent entry that is exactly zero contributes nothing whatever the partial derivative
     (like JAX's symbolic zeros: ``sqrt`` of a parameter-free 0 does not give ``inf * 0``), and
     a zero partial derivative ignores the operand's tangent (``where`` and unused operands).
+    The restarts are a plain array dimension (not ``vmap``), so the opcode stays a scalar and the
+    switch runs one branch.
     """
-    n, n_p = X.shape[1], p.shape[0]
-    val = jnp.zeros((n_regs, n), dtype=p.dtype)
-    tan = jnp.zeros((n_regs, n_p, n), dtype=p.dtype)
+    if p.ndim == 1:
+        val, tan = run(code, X, p[None], n_regs)
+        return val[0], tan[0]
+    n_r, n_p = p.shape
+    n = X.shape[1]
+    val = jnp.zeros((n_regs, n_r, n), dtype=p.dtype)
+    tan = jnp.zeros((n_regs, n_r, n_p, n), dtype=p.dtype)
     basis = jnp.eye(n_p, dtype=p.dtype)
     param = OP["param"]
 
@@ -682,11 +690,12 @@ def run(
         val, tan = carry
         op, a, b, c = code["ops"][k], code["a"][k], code["b"][k], code["c"][k]
         v, dx, dy, dz = lax.switch(op, _BRANCHES, val[a], val[b], val[c], code["imm"][k], a, X, p)
-        t = jnp.zeros((n_p, n), dtype=p.dtype)
+        t = jnp.zeros((n_r, n_p, n), dtype=p.dtype)
         for d, r in ((dx, a), (dy, b), (dz, c)):
             tr = tan[r]
-            t = t + jnp.where((d == 0)[None, :] | (tr == 0), 0.0, d[None, :] * tr)
-        t = jnp.where(op == param, basis[jnp.minimum(a, n_p - 1)][:, None], t)
+            t = t + jnp.where((d == 0)[:, None, :] | (tr == 0), 0.0, d[:, None, :] * tr)
+        unit = jnp.broadcast_to(basis[jnp.minimum(a, n_p - 1)][None, :, None], t.shape)
+        t = jnp.where(op == param, unit, t)
         dst = code["dst"][k]
         return (
             lax.dynamic_update_index_in_dim(val, v, dst, 0),
@@ -694,7 +703,8 @@ def run(
         )
 
     val, tan = lax.fori_loop(0, code["length"], body, (val, tan))
-    return val[code["outputs"]], tan[code["outputs"]]
+    outputs = code["outputs"]
+    return jnp.swapaxes(val[outputs], 0, 1), jnp.swapaxes(tan[outputs], 0, 1)
 
 
 def pack(
