@@ -640,6 +640,7 @@ def _affine_groups(
     Levenberg-Marquardt loop (their slots in the interpreter are empty).
     """
     parts = program.parts
+    n = targets.shape[1]
     group = list(range(len(parts)))
 
     def root(k: int) -> int:
@@ -667,7 +668,7 @@ def _affine_groups(
             for k in outs:
                 local = [position[g] for g in parts[k].params.tolist()]
                 q = probes[:, local] if local else np.zeros((probes.shape[0], 1))
-                out.append(interp.evaluate_numpy(parts[k], list(rows), q)[:, 0])
+                out.append(interp.evaluate_numpy(parts[k], list(rows), q, n)[:, 0])
             v = np.stack(out, axis=1)
             if operator is not None:
                 index, weight = np.asarray(operator.index), np.asarray(operator.weight)
@@ -948,7 +949,8 @@ def fit_batch(
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:
             def numpy_values(probes: np.ndarray) -> np.ndarray:
-                values = interp.evaluate_numpy(programs[i], list(feature_values(i)), probes)
+                rows = list(feature_values(i))
+                values = interp.evaluate_numpy(programs[i], rows, probes, n)
                 if operator is None:
                     return values
                 index, weight = np.asarray(operator.index), np.asarray(operator.weight)

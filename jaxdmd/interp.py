@@ -116,7 +116,8 @@ class Program:
 
     def values(self, args: Sequence[np.ndarray], p: np.ndarray) -> np.ndarray:
         """Predictions ``[B, K, N]`` at parameters ``p [B, P]`` (NumPy, on the host)."""
-        return evaluate_numpy(self, list(self.feature_values(args)), p)
+        n = np.shape(args[0])[0] if len(args) else 1
+        return evaluate_numpy(self, list(self.feature_values(args)), p, n)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -482,14 +483,18 @@ def program_of(skeleton: Any) -> Program | None:
 # NumPy evaluation (host)
 
 
-def evaluate_numpy(program: Program, args: Sequence[np.ndarray], p: np.ndarray) -> np.ndarray:
+def evaluate_numpy(
+    program: Program, args: Sequence[np.ndarray], p: np.ndarray, n: int | None = None
+) -> np.ndarray:
     """Evaluate on the host: ``args`` one ``[N]`` array per argument, ``p`` ``[B, P]``.
 
-    Returns ``[B, K, N]`` float64 (non-finite values as they come, no warnings).
+    Returns ``[B, K, N]`` float64 (non-finite values as they come, no warnings). ``n`` is
+    needed when there are no ``args``.
     """
     p = np.atleast_2d(np.asarray(p, dtype=np.float64))
     n_batch = p.shape[0]
-    n = np.shape(args[0])[0] if len(args) else 1
+    if n is None:
+        n = np.shape(args[0])[0] if len(args) else 1
     regs: list[Any] = [None] * program.n_regs
     with np.errstate(all="ignore"):
         for op, a, b, c, d, imm in zip(
