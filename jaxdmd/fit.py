@@ -620,6 +620,7 @@ _EMPTY = interp.Program(
     arguments=(), n_params=0, ops=np.zeros(0, np.int32), a=np.zeros(0, np.int32),
     b=np.zeros(0, np.int32), c=np.zeros(0, np.int32), dst=np.zeros(0, np.int32),
     imm=np.zeros(0), outputs=np.zeros(1, np.int32), n_regs=1, params=np.zeros(0, np.int32),
+    kinds=np.zeros((0, 3), np.int32), consts=np.zeros((0, 3)),
 )  # fmt: skip
 
 

@@ -98,6 +98,8 @@ class Program:
     features: Program | None = None
     parts: tuple[Program, ...] = ()
     params: np.ndarray | None = None
+    kinds: np.ndarray | None = None  # [L, 3]: operand from a register (0), row (1), p (2), imm (3)
+    consts: np.ndarray | None = None  # [L, 3]: the operands' immediates (kind 3)
 
     @property
     def length(self) -> int:
@@ -380,12 +382,17 @@ def _output_program(
     return dataclasses.replace(program, params=np.array(used, dtype=np.int32))
 
 
+_LEAVES = {"var": 1, "param": 2, "const": 3}  # operand kinds; 0 is a register
+
+
 def _allocate(
     code: list[tuple[str, int, int, int, float]],
     outputs: list[int],
     arguments: tuple[str, ...],
     n_params: int,
 ) -> Program:
+    """Registers for an SSA code: loads (``var``, ``param``, ``const``) are folded into the
+    operands of the instructions that use them (operand kinds), linear-scan allocation."""
     live = [False] * len(code)
     for o in outputs:
         live[o] = True
@@ -393,16 +400,22 @@ def _allocate(
         if live[i]:
             op, a, b, c, _ = code[i]
             for j, x in enumerate((a, b, c)):
-                if j < _ARITY[op]:
+                if j < _ARITY[op] and (code[x][0] not in _LEAVES or x in outputs):
                     live[x] = True
+                elif j < _ARITY[op]:
+                    live[x] = live[x] or False  # folded into this operand
     order = [i for i in range(len(code)) if live[i]]
     if len(order) > MAX_INSTRUCTIONS:
         raise LoweringError(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
+
+    def in_register(x: int) -> bool:
+        return code[x][0] not in _LEAVES
+
     last_use: dict[int, int] = {}
     for pos, i in enumerate(order):
         op, a, b, c, _ = code[i]
         for j, x in enumerate((a, b, c)):
-            if j < _ARITY[op]:
+            if j < _ARITY[op] and in_register(x):
                 last_use[x] = pos
     for o in outputs:
         last_use[o] = len(order)  # outputs stay live to the end
@@ -413,11 +426,19 @@ def _allocate(
     for pos, i in enumerate(order):
         op, a, b, c, imm = code[i]
         n = _ARITY[op]
-        operands = [reg[x] if j < n else 0 for j, x in enumerate((a, b, c))]
+        operands, kinds, consts = [0, 0, 0], [0, 0, 0], [0.0, 0.0, 0.0]
+        for j, x in enumerate((a, b, c)[:n]):
+            if in_register(x):
+                operands[j] = reg[x]
+            else:
+                leaf, index, _, _, value = code[x]
+                kinds[j] = _LEAVES[leaf]
+                operands[j] = index if leaf != "const" else 0
+                consts[j] = value if leaf == "const" else 0.0
         if op in ("var", "param"):
             operands[0] = a
         for j, x in enumerate((a, b, c)):  # operands dead after this instruction
-            if j < n and last_use.get(x) == pos and reg[x] not in free:
+            if j < n and in_register(x) and last_use.get(x) == pos and reg[x] not in free:
                 free.append(reg[x])
         if free:
             free.sort()
@@ -427,7 +448,7 @@ def _allocate(
         reg[i] = r
         if last_use.get(i) is None:  # never read (cannot happen after DCE, but be safe)
             free.append(r)
-        rows.append((OP[op], *operands, r, imm))
+        rows.append((OP[op], *operands, r, imm, kinds, consts))
     arr = np.array([row[:5] for row in rows], dtype=np.int32).reshape(-1, 5)
     return Program(
         arguments=arguments,
@@ -440,6 +461,8 @@ def _allocate(
         imm=np.array([row[5] for row in rows], dtype=np.float64),
         outputs=np.array([reg[o] for o in outputs], dtype=np.int32),
         n_regs=max(1, n_regs),
+        kinds=np.array([row[6] for row in rows], dtype=np.int32).reshape(-1, 3),
+        consts=np.array([row[7] for row in rows], dtype=np.float64).reshape(-1, 3),
     )
 
 
@@ -496,10 +519,21 @@ def evaluate_numpy(
     if n is None:
         n = np.shape(args[0])[0] if len(args) else 1
     regs: list[Any] = [None] * program.n_regs
+
+    def operand(kind: int, index: int, value: float) -> Any:
+        if kind == 0:
+            return regs[index] if index < len(regs) else None
+        if kind == 1:
+            return np.asarray(args[index], dtype=np.float64)[None, :]
+        if kind == 2:
+            return p[:, index : index + 1]
+        return np.asarray(value).reshape(1, 1)
+
     with np.errstate(all="ignore"):
-        for op, a, b, c, d, imm in zip(
+        for op, a, b, c, d, imm, kinds, consts in zip(
             program.ops.tolist(), program.a.tolist(), program.b.tolist(), program.c.tolist(),
-            program.dst.tolist(), program.imm.tolist(), strict=True,
+            program.dst.tolist(), program.imm.tolist(), program.kinds.tolist(),
+            program.consts.tolist(), strict=True,
         ):  # fmt: skip
             name = OPCODES[op]
             if name == "var":
@@ -508,11 +542,9 @@ def evaluate_numpy(
                 out = p[:, a : a + 1]
             elif name == "const":
                 out = np.asarray(imm).reshape(1, 1)
-            elif name == "powc":
-                out = np.power(regs[a], imm)
             else:
-                x, y, z = regs[a], regs[b], regs[c]
-                out = _NUMPY[name](x, y, z)
+                x, y, z = (operand(*t) for t in zip(kinds, (a, b, c), consts, strict=True))
+                out = np.power(x, imm) if name == "powc" else _NUMPY[name](x, y, z)
             regs[d] = out
         outs = [np.broadcast_to(regs[r], (n_batch, n)) for r in program.outputs.tolist()]
     return np.stack(outs, axis=1).astype(np.float64)
@@ -691,13 +723,34 @@ def run(
     basis = jnp.eye(n_p, dtype=p.dtype)
     param = OP["param"]
 
+    n_rows = X.shape[0]
+
+    def operand(val, tan, kind, index, value):
+        """An operand's value [R, N] and tangent [R, P, N] from a register, a row, p or imm."""
+        reg = jnp.minimum(index, n_regs - 1)
+        v = jnp.where(
+            kind == 0,
+            val[reg],
+            jnp.where(
+                kind == 1,
+                X[jnp.minimum(index, n_rows - 1)][None, :],
+                jnp.where(kind == 2, p[:, jnp.minimum(index, n_p - 1)][:, None], value),
+            ),
+        )
+        unit = basis[jnp.minimum(index, n_p - 1)][None, :, None]
+        t = jnp.where(kind == 0, tan[reg], jnp.where(kind == 2, unit, 0.0))
+        return jnp.broadcast_to(v, (n_r, n)), t
+
     def body(k, carry):
         val, tan = carry
         op, a, b, c = code["ops"][k], code["a"][k], code["b"][k], code["c"][k]
-        v, dx, dy, dz = lax.switch(op, _BRANCHES, val[a], val[b], val[c], code["imm"][k], a, X, p)
+        kinds, consts = code["kinds"][k], code["consts"][k]
+        (x, tx), (y, ty), (z, tz) = (
+            operand(val, tan, kinds[j], r, consts[j]) for j, r in enumerate((a, b, c))
+        )
+        v, dx, dy, dz = lax.switch(op, _BRANCHES, x, y, z, code["imm"][k], a, X, p)
         t = jnp.zeros((n_r, n_p, n), dtype=p.dtype)
-        for d, r in ((dx, a), (dy, b), (dz, c)):
-            tr = tan[r]
+        for d, tr in ((dx, tx), (dy, ty), (dz, tz)):
             t = t + jnp.where((d == 0)[:, None, :] | (tr == 0), 0.0, d[:, None, :] * tr)
         unit = jnp.broadcast_to(basis[jnp.minimum(a, n_p - 1)][None, :, None], t.shape)
         t = jnp.where(op == param, unit, t)
@@ -725,16 +778,21 @@ def pack(
         "c": np.zeros((n_slots, length), np.int32),
         "dst": np.zeros((n_slots, length), np.int32),
         "imm": np.zeros((n_slots, length), np.float64),
+        "kinds": np.zeros((n_slots, length, 3), np.int32),
+        "consts": np.zeros((n_slots, length, 3), np.float64),
         "outputs": np.zeros((n_slots, k), np.int32),
         "length": np.zeros((n_slots,), np.int32),
     }
     var = OP["var"]
     for s, (prog, offset) in enumerate(zip(programs, offsets, strict=True)):
         n = prog.length
-        a = prog.a.copy()
-        a[prog.ops == var] += offset
-        for name, arr in (("ops", prog.ops), ("a", a), ("b", prog.b), ("c", prog.c),
-                          ("dst", prog.dst), ("imm", prog.imm)):  # fmt: skip
+        abc = [prog.a.copy(), prog.b.copy(), prog.c.copy()]
+        abc[0][prog.ops == var] += offset
+        for j in range(3):
+            abc[j][prog.kinds[:, j] == 1] += offset
+        for name, arr in (("ops", prog.ops), ("a", abc[0]), ("b", abc[1]), ("c", abc[2]),
+                          ("dst", prog.dst), ("imm", prog.imm), ("kinds", prog.kinds),
+                          ("consts", prog.consts)):  # fmt: skip
             out[name][s, :n] = arr
         out["outputs"][s] = prog.outputs
         out["length"][s] = n
