@@ -34,10 +34,12 @@ therefore a second-order method with a tiny compiled body:
    learning rate (optax) on the summed NMSE. Measured: it costs compile and run time and does not
    improve on step 3, whose damping is scale invariant (coefficients range from 0.01 to 377).
 3. *Levenberg-Marquardt polish*, written here in a few lines of JAX: Jacobian by forward mode
-   (``jvp`` vmapped over the parameter basis), normal equations ``(J^T J + lambda D) dp = -J^T r``
+   (the interpreter's, or ``jvp`` vmapped over the parameter basis), normal equations
+   ``(J^T J + lambda D) dp = -J^T r``
    with Marquardt scaling ``D = diag(J^T J)``, one batched Cholesky solve for all candidates and
    restarts (parameters padded to the largest candidate), inside a ``lax.while_loop`` that stops
-   when every fit has converged. For a skeleton linear in ``p`` the first step is the exact
+   when every fit has converged (``ftol`` on accepted steps, ``xtol`` on the step tried, or the
+   damping reaching ``max_damping``). For a skeleton linear in ``p`` the first step is the exact
    least-squares solution. The equations are separable, so LM runs per *output component*: the
    outputs are grouped by shared parameters (from the Jacobian's sparsity, found at run time),
    and every group has its own damping, acceptance and convergence test, as if each equation were
@@ -47,16 +49,38 @@ therefore a second-order method with a tiny compiled body:
    group depend only on its own parameters, so the combined losses are exact. Eight restarts of
    a five-equation candidate thus act as eight restarts per equation, not eight joint draws.
 
-All candidates are traced into one function (a Python loop over candidates inside ``jit``,
-``vmap`` over restarts), so one XLA compile serves the round.
+How the candidates are run (``FitConfig.interpreter``, on by default)
+--------------------------------------------------------------------
+0. *Exact least squares first* (``linear_shortcut``). A candidate affine in ``p`` is solved
+   exactly on the host; so is every *group of outputs* of a nonlinear candidate that is affine in
+   its own parameters (outputs sharing no parameter are separate problems). Only the nonlinear
+   groups go to Levenberg-Marquardt.
+1. *One interpreter for every candidate.* A skeleton made by ``jaxdmd.skeleton.compile_skeleton``
+   is lowered to register-machine programs (:mod:`jaxdmd.interp`): its parameter-free
+   subexpressions become host-side feature rows (computed once, in NumPy), and each output gets
+   its own short program whose Jacobian is only as wide as that output's parameters. One jitted
+   fit (this LM loop around a ``lax.map`` over (candidate, output) slots, a ``lax.switch``
+   interpreter with hand-written forward-mode derivatives, restarts as an array dimension) runs
+   any batch: programs are data, shapes are padded to buckets (8 candidates per call; parameters,
+   registers and feature rows to powers of two), so the executable is compiled once per process
+   and reused in every round. A slot whose output group has converged at every restart is skipped.
+   With JAX's persistent compilation cache configured (``jax_compilation_cache_dir``), the
+   compiled executable and (with the optional ``flatbuffers``) the traced function are kept on
+   disk, so a later process neither traces nor compiles it.
+2. *Fallback.* Skeletons without a program (a ``fn`` not made from its ``source``, or
+   ``interpreter=False``) are traced into one fused function (a Python loop over candidates
+   inside ``jit``, ``vmap`` over restarts, forward-mode Jacobian by ``jvp``): one XLA compile per
+   batch of distinct candidates, which is what the interpreter avoids.
 
-Failures never break a batch: each candidate is first *traced* on its own (``jax.eval_shape`` of
-its residual and Jacobian; no XLA compile), and a candidate that fails to trace, reads an unknown
+Failures never break a batch: each candidate without a program is first *traced* on its own
+(``jax.eval_shape`` of its residual and Jacobian; no XLA compile; a lowered program needs no
+trace), and a candidate that fails to trace, reads an unknown
 variable, or returns the wrong number or shape of outputs is dropped with the reason. Inside the
 fit non-finite values are masked (a non-finite trial step is rejected like a step that increases
 the loss); a candidate whose every restart stays non-finite, or whose NMSE exceeds ``max_nmse``,
-is returned with ``score = -inf`` and the reason in ``error``. If the fused compile itself fails,
-the candidates are fitted one by one so that only the culprit is lost.
+is returned with ``score = -inf`` and the reason in ``error``. If the interpreter fit raises,
+its candidates go through the fallback; if a fused compile fails, the candidates are fitted one
+by one so that only the culprit is lost.
 """
 
 from __future__ import annotations
@@ -121,6 +145,9 @@ class FitConfig:
         compiler_options: XLA options for the fused compile, as ``(name, value)`` pairs. The
             default turns XLA:CPU's new fusion emitters off, which roughly halves the compile
             time of these many small fusions at equal run time (measured, docs/fit.md).
+        interpreter: run lowered skeletons in the one pre-built interpreter
+            (:mod:`jaxdmd.interp`) instead of compiling them; False compiles every batch.
+        interpreter_chunk: candidates per interpreter call (a fixed shape: one compile).
     """
 
     restarts: int = 8
