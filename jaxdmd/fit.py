@@ -487,7 +487,8 @@ def _exported(jitted: Any, args: tuple, key: str, sig: Any) -> Any:
     import hashlib
     import pathlib
 
-    sources = b"".join(pathlib.Path(m.__file__).read_bytes() for m in (interp, _this_module()))
+    modules = (interp, interp.sk, _this_module())  # the interpreter, its functions, the LM
+    sources = b"".join(pathlib.Path(m.__file__).read_bytes() for m in modules)
     digest = hashlib.sha256(
         repr((key, str(sig), jax.__version__)).encode() + sources
     ).hexdigest()[:32]
