@@ -399,11 +399,9 @@ def _allocate(
     for i in range(len(code) - 1, -1, -1):  # dead-code elimination (operands precede users)
         if live[i]:
             op, a, b, c, _ = code[i]
-            for j, x in enumerate((a, b, c)):
-                if j < _ARITY[op] and (code[x][0] not in _LEAVES or x in outputs):
+            for j, x in enumerate((a, b, c)):  # a load is folded into its users' operands
+                if j < _ARITY[op] and code[x][0] not in _LEAVES:
                     live[x] = True
-                elif j < _ARITY[op]:
-                    live[x] = live[x] or False  # folded into this operand
     order = [i for i in range(len(code)) if live[i]]
     if len(order) > MAX_INSTRUCTIONS:
         raise LoweringError(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
