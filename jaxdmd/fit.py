@@ -34,10 +34,12 @@ therefore a second-order method with a tiny compiled body:
    learning rate (optax) on the summed NMSE. Measured: it costs compile and run time and does not
    improve on step 3, whose damping is scale invariant (coefficients range from 0.01 to 377).
 3. *Levenberg-Marquardt polish*, written here in a few lines of JAX: Jacobian by forward mode
-   (``jvp`` vmapped over the parameter basis), normal equations ``(J^T J + lambda D) dp = -J^T r``
+   (the interpreter's, or ``jvp`` vmapped over the parameter basis), normal equations
+   ``(J^T J + lambda D) dp = -J^T r``
    with Marquardt scaling ``D = diag(J^T J)``, one batched Cholesky solve for all candidates and
    restarts (parameters padded to the largest candidate), inside a ``lax.while_loop`` that stops
-   when every fit has converged. For a skeleton linear in ``p`` the first step is the exact
+   when every fit has converged (``ftol`` on accepted steps, ``xtol`` on the step tried, or the
+   damping reaching ``max_damping``). For a skeleton linear in ``p`` the first step is the exact
    least-squares solution. The equations are separable, so LM runs per *output component*: the
    outputs are grouped by shared parameters (from the Jacobian's sparsity, found at run time),
    and every group has its own damping, acceptance and convergence test, as if each equation were
@@ -47,16 +49,38 @@ therefore a second-order method with a tiny compiled body:
    group depend only on its own parameters, so the combined losses are exact. Eight restarts of
    a five-equation candidate thus act as eight restarts per equation, not eight joint draws.
 
-All candidates are traced into one function (a Python loop over candidates inside ``jit``,
-``vmap`` over restarts), so one XLA compile serves the round.
+How the candidates are run (``FitConfig.interpreter``, on by default)
+--------------------------------------------------------------------
+0. *Exact least squares first* (``linear_shortcut``). A candidate affine in ``p`` is solved
+   exactly on the host; so is every *group of outputs* of a nonlinear candidate that is affine in
+   its own parameters (outputs sharing no parameter are separate problems). Only the nonlinear
+   groups go to Levenberg-Marquardt.
+1. *One interpreter for every candidate.* A skeleton made by ``jaxdmd.skeleton.compile_skeleton``
+   is lowered to register-machine programs (:mod:`jaxdmd.interp`): its parameter-free
+   subexpressions become host-side feature rows (computed once, in NumPy), and each output gets
+   its own short program whose Jacobian is only as wide as that output's parameters. One jitted
+   fit (this LM loop around a ``lax.map`` over (candidate, output) slots, a ``lax.switch``
+   interpreter with hand-written forward-mode derivatives, restarts as an array dimension) runs
+   any batch: programs are data, shapes are padded to buckets (8 candidates per call; parameters,
+   registers and feature rows to powers of two), so the executable is compiled once per process
+   and reused in every round. A slot whose output group has converged at every restart is skipped.
+   With JAX's persistent compilation cache configured (``jax_compilation_cache_dir``), the
+   compiled executable and (with the optional ``flatbuffers``) the traced function are kept on
+   disk, so a later process neither traces nor compiles it.
+2. *Fallback.* Skeletons without a program (a ``fn`` not made from its ``source``, or
+   ``interpreter=False``) are traced into one fused function (a Python loop over candidates
+   inside ``jit``, ``vmap`` over restarts, forward-mode Jacobian by ``jvp``): one XLA compile per
+   batch of distinct candidates, which is what the interpreter avoids.
 
-Failures never break a batch: each candidate is first *traced* on its own (``jax.eval_shape`` of
-its residual and Jacobian; no XLA compile), and a candidate that fails to trace, reads an unknown
+Failures never break a batch: each candidate without a program is first *traced* on its own
+(``jax.eval_shape`` of its residual and Jacobian; no XLA compile; a lowered program needs no
+trace), and a candidate that fails to trace, reads an unknown
 variable, or returns the wrong number or shape of outputs is dropped with the reason. Inside the
 fit non-finite values are masked (a non-finite trial step is rejected like a step that increases
 the loss); a candidate whose every restart stays non-finite, or whose NMSE exceeds ``max_nmse``,
-is returned with ``score = -inf`` and the reason in ``error``. If the fused compile itself fails,
-the candidates are fitted one by one so that only the culprit is lost.
+is returned with ``score = -inf`` and the reason in ``error``. If the interpreter fit raises,
+its candidates go through the fallback; if a fused compile fails, the candidates are fitted one
+by one so that only the culprit is lost.
 """
 
 from __future__ import annotations
@@ -72,6 +96,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax import lax
+
+from jaxdmd import interp
 
 __all__ = ["FitConfig", "FitResult", "Operator", "fit_batch", "nmse"]
 
@@ -106,6 +132,10 @@ class FitConfig:
         damping_down: factor on ``lambda`` after an accepted step.
         max_damping: a fit whose ``lambda`` exceeds this is considered converged (stuck).
         ftol: converged when an accepted step lowers the group's loss by less than this fraction.
+        xtol: converged when the step just tried (accepted or not) changes every parameter of
+            the group by less than this fraction (a stationary point: without it, a converged
+            fit spends ~19 rejected steps raising the damping to ``max_damping``). Outputs that
+            depend on no parameter are converged from the start.
         max_nmse: a candidate whose mean NMSE exceeds this is dropped as diverged.
         combine_restarts: choose the best restart per group of separable outputs (else the best
             restart of the candidate as a whole).
@@ -115,6 +145,9 @@ class FitConfig:
         compiler_options: XLA options for the fused compile, as ``(name, value)`` pairs. The
             default turns XLA:CPU's new fusion emitters off, which roughly halves the compile
             time of these many small fusions at equal run time (measured, docs/fit.md).
+        interpreter: run lowered skeletons in the one pre-built interpreter
+            (:mod:`jaxdmd.interp`) instead of compiling them; False compiles every batch.
+        interpreter_chunk: candidates per interpreter call (a fixed shape: one compile).
     """
 
     restarts: int = 8
@@ -128,10 +161,13 @@ class FitConfig:
     damping_down: float = 0.1
     max_damping: float = 1e16
     ftol: float = 1e-8
+    xtol: float = 1e-10
     max_nmse: float = 1e6
     combine_restarts: bool = True
     linear_shortcut: bool = True
     compiler_options: tuple[tuple[str, Any], ...] = (("xla_cpu_use_fusion_emitters", False),)
+    interpreter: bool = True
+    interpreter_chunk: int = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,11 +269,12 @@ def _losses(r: Array) -> Array:
 
 def _linearise(model, data, targets, scale, p):
     """Losses ``[K]``, ``J^T J`` ``[P, P]``, ``J^T r`` ``[P]`` and dependence ``[K, P]`` at p."""
+    return _linearise_fn(lambda q: _residual(model, data, targets, scale, q), p)
+
+
+def _linearise_fn(f: Callable[[Array], Array], p: Array):
+    """:func:`_linearise` for any residual function ``f(p) -> [K, N]``."""
     eye = jnp.eye(p.shape[0], dtype=p.dtype)
-
-    def f(q):
-        return _residual(model, data, targets, scale, q)
-
     r, jac = jax.vmap(lambda v: jax.jvp(f, (p,), (v,)), out_axes=(None, -1))(eye)  # J [K, N, P]
     jac = jnp.where(jnp.isfinite(jac), jac, 0.0)
     rf = jnp.where(jnp.isfinite(r), r, 0.0)
@@ -289,7 +326,7 @@ def _initial_params(model: _Model, key_data: np.ndarray, config: FitConfig) -> n
 
 def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
     """The jitted fit of a batch: ``(data, targets, scale, key) -> arrays``."""
-    n_restarts, n_out = config.restarts, n_outputs
+    n_out = n_outputs
     pmax = max(m.n_params for m in models)
 
     def evaluate_all(data, targets, scale, p):  # p [C, R, Pmax]
@@ -332,74 +369,104 @@ def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Cal
     def fit(data, targets, scale, p):
         if config.adam_steps > 0:
             p = adam(data, targets, scale, p)
-        shape = (len(models), n_restarts, n_out)
-        eye = jnp.eye(pmax)
+        return _levenberg_marquardt(
+            lambda q, need, prev: evaluate_all(data, targets, scale, q), p, n_out, config
+        )
 
-        def cond(s):
-            return (s["it"] < config.polish_steps + 1) & ~jnp.all(s["done"])
+    return _compiled_caller(jax.jit(fit), config)
 
-        def body(s):
-            dep = s["dep"]
-            active = ~s["done"]  # [C, R, K]
-            # parameter j of restart r moves if any active output depends on it
-            dep_r = dep[:, None, :, :]  # [C, 1, K, P]
-            move = jnp.any(dep_r & active[..., None], axis=2)  # [C, R, P]
-            lam_p = jnp.max(jnp.where(dep_r, s["lam"][..., None], 0.0), axis=2)  # [C, R, P]
-            d = jnp.diagonal(s["jtj"], axis1=-2, axis2=-1)
-            d = jnp.maximum(d, 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300)
-            mm = move[..., :, None] & move[..., None, :]
-            a = jnp.where(mm, s["jtj"] + (lam_p * d)[..., None] * eye, eye)
-            g = jnp.where(move, s["jtr"], 0.0)
-            dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), -g[..., None])
-            # the first pass evaluates the starting points themselves
-            p_try = jnp.where(move & (s["it"] > 0), s["p"] + dp[..., 0], s["p"])
-            loss_t, jtj_t, jtr_t, dep_t = evaluate_all(data, targets, scale, p_try)
-            dep_new = dep | dep_t
-            coupled = _closure(dep_new)
-            lg = _group_sum(coupled, s["loss"])
-            lg_t = _group_sum(coupled, loss_t)
-            first = s["it"] == 0
-            ok = (jnp.isfinite(lg_t) & (lg_t < lg) & active) | first  # [C, R, K]
-            acc_p = jnp.any(dep_new[:, None] & ok[..., None], axis=2) | first  # [C, R, P]
-            acc_pp = acc_p[..., :, None] & acc_p[..., None, :]
-            gain = (lg - lg_t) / jnp.where(lg > 0, lg, 1.0)
-            lam_new = jnp.where(ok, s["lam"] * config.damping_down, s["lam"] * config.damping_up)
-            lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
-            # a group is done when all of its outputs agree it is (damping is shared)
-            conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
-            conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
-            return {
-                "p": jnp.where(acc_p, p_try, s["p"]),
-                "loss": jnp.where(ok, loss_t, s["loss"]),
-                "jtj": jnp.where(acc_pp, jtj_t, s["jtj"]),
-                "jtr": jnp.where(acc_p, jtr_t, s["jtr"]),
-                "dep": dep_new,
-                "lam": lam_new,
-                "done": (s["done"] | conv) & ~first,
-                "it": s["it"] + 1,
-            }
 
-        init = {
-            "p": p,
-            "loss": jnp.full(shape, jnp.inf),
-            "jtj": jnp.broadcast_to(eye, (*shape[:2], pmax, pmax)),
-            "jtr": jnp.zeros((*shape[:2], pmax)),
-            "dep": jnp.zeros((len(models), n_out, pmax), dtype=bool),
-            "lam": jnp.full(shape, config.damping),
-            "done": jnp.zeros(shape, dtype=bool),
-            "it": jnp.zeros((), dtype=jnp.int32),
+def _levenberg_marquardt(evaluate_all: Callable, p: Array, n_out: int, config: FitConfig):
+    """The batched LM loop (module docstring, step 3) from ``p [C, R, Pmax]``.
+
+    ``evaluate_all(p, need, previous)`` returns losses ``[C, R, K]``, ``J^T J`` ``[C, R, P, P]``,
+    ``J^T r`` ``[C, R, P]`` and the dependence of outputs on parameters ``[C, K, P]``. It may skip
+    the outputs whose ``need [C, K]`` is False (their whole group has converged at every restart,
+    so none of their parameters moves) and return their ``previous [C, R, K]`` losses.
+    """
+    n_models, n_restarts, pmax = p.shape
+    shape = (n_models, n_restarts, n_out)
+    eye = jnp.eye(pmax)
+
+    def cond(s):
+        return (s["it"] < config.polish_steps + 1) & ~jnp.all(s["done"])
+
+    def body(s):
+        dep = s["dep"]
+        active = ~s["done"]  # [C, R, K]
+        # parameter j of restart r moves if any active output depends on it
+        dep_r = dep[:, None, :, :]  # [C, 1, K, P]
+        move = jnp.any(dep_r & active[..., None], axis=2)  # [C, R, P]
+        lam_p = jnp.max(jnp.where(dep_r, s["lam"][..., None], 0.0), axis=2)  # [C, R, P]
+        d = jnp.diagonal(s["jtj"], axis1=-2, axis2=-1)
+        d = jnp.maximum(d, 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300)
+        mm = move[..., :, None] & move[..., None, :]
+        a = jnp.where(mm, s["jtj"] + (lam_p * d)[..., None] * eye, eye)
+        g = jnp.where(move, s["jtr"], 0.0)
+        dp = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), -g[..., None])
+        # the first pass evaluates the starting points themselves
+        p_try = jnp.where(move & (s["it"] > 0), s["p"] + dp[..., 0], s["p"])
+        first = s["it"] == 0
+        group = _closure(dep)
+        need = jnp.any(group & jnp.any(active, axis=1)[:, None, :], axis=-1) | first
+        loss_t, jtj_t, jtr_t, dep_t = evaluate_all(p_try, need, s["loss"])
+        dep_new = dep | dep_t
+        coupled = _closure(dep_new)
+        lg = _group_sum(coupled, s["loss"])
+        lg_t = _group_sum(coupled, loss_t)
+        ok = (jnp.isfinite(lg_t) & (lg_t < lg) & active) | first  # [C, R, K]
+        acc_p = jnp.any(dep_new[:, None] & ok[..., None], axis=2) | first  # [C, R, P]
+        acc_pp = acc_p[..., :, None] & acc_p[..., None, :]
+        gain = (lg - lg_t) / jnp.where(lg > 0, lg, 1.0)
+        lam_new = jnp.where(ok, s["lam"] * config.damping_down, s["lam"] * config.damping_up)
+        lam_new = jnp.where(first, config.damping, jnp.clip(lam_new, 1e-15, 1e300))
+        # a group is done when all of its outputs agree it is (damping is shared)
+        conv = (ok & (gain < config.ftol)) | (lam_new > config.max_damping) | (lg_t == 0)
+        # the step just tried was negligible for every parameter of the output: stationary
+        rel = jnp.abs(p_try - s["p"]) / (jnp.abs(s["p"]) + 1e-300)  # [C, R, P]
+        big = jnp.any(dep_new[:, None] & (rel > config.xtol)[:, :, None, :], axis=-1)
+        conv = conv | (~big & ~first) | ~jnp.any(dep_new, axis=-1)[:, None, :]
+        conv = jnp.all(jnp.where(coupled[:, None], conv[:, :, None, :], True), axis=-1)
+        return {
+            "p": jnp.where(acc_p, p_try, s["p"]),
+            "loss": jnp.where(ok, loss_t, s["loss"]),
+            "jtj": jnp.where(acc_pp, jtj_t, s["jtj"]),
+            "jtr": jnp.where(acc_p, jtr_t, s["jtr"]),
+            "dep": dep_new,
+            "lam": lam_new,
+            "done": (s["done"] | conv) & ~first,
+            "it": s["it"] + 1,
         }
-        s = lax.while_loop(cond, body, init)
-        return s["p"], s["loss"], s["dep"], s["it"]
 
-    jitted = jax.jit(fit)
+    init = {
+        "p": p,
+        "loss": jnp.full(shape, jnp.inf),
+        "jtj": jnp.broadcast_to(eye, (*shape[:2], pmax, pmax)),
+        "jtr": jnp.zeros((*shape[:2], pmax)),
+        "dep": jnp.zeros((n_models, n_out, pmax), dtype=bool),
+        "lam": jnp.full(shape, config.damping),
+        "done": jnp.zeros(shape, dtype=bool),
+        "it": jnp.zeros((), dtype=jnp.int32),
+    }
+    s = lax.while_loop(cond, body, init)
+    return s["p"], s["loss"], s["dep"], s["it"]
+
+
+def _compiled_caller(jitted: Any, config: FitConfig, export_key: str | None = None) -> Callable:
+    """Call ``jitted``, compiling once per argument signature with ``config.compiler_options``.
+
+    With ``export_key`` and JAX's persistent compilation cache configured
+    (``jax_compilation_cache_dir``), the traced and lowered function is also stored there with
+    ``jax.export`` so that a later process skips tracing and lowering as well as compiling.
+    """
     compiled: dict[Any, Callable] = {}
 
     def call(*args: Any) -> Any:
         sig = jax.tree.map(lambda x: (x.shape, x.dtype), args)
         sig = (jax.tree.structure(args), tuple(jax.tree.leaves(sig)))
         if sig not in compiled:
-            lowered = jitted.lower(*args)
+            lowered = _exported(jitted, args, export_key, sig) if export_key else None
+            lowered = lowered or jitted.lower(*args)
             options = dict(config.compiler_options)
             try:
                 compiled[sig] = lowered.compile(options or None)
@@ -412,9 +479,131 @@ def _build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Cal
     return call
 
 
+def _exported(jitted: Any, args: tuple, key: str, sig: Any) -> Any:
+    """``jitted`` lowered through a ``jax.export`` kept in the persistent cache directory."""
+    cache_dir = jax.config.jax_compilation_cache_dir
+    if not cache_dir:
+        return None
+    import hashlib
+    import pathlib
+
+    modules = (interp, interp.sk, _this_module())  # the interpreter, its functions, the LM
+    sources = b"".join(pathlib.Path(m.__file__).read_bytes() for m in modules)
+    digest = hashlib.sha256(
+        repr((key, str(sig), jax.__version__)).encode() + sources
+    ).hexdigest()[:32]
+    path = pathlib.Path(cache_dir) / f"jaxdmd-fit-{digest}.jaxexport"
+    try:
+        if path.exists():
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        else:
+            blob = jax.export.export(jitted)(*args).serialize()
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{np.random.randint(1 << 30)}")
+            tmp.write_bytes(blob)
+            tmp.replace(path)
+            exported = jax.export.deserialize(blob)
+        return jax.jit(exported.call).lower(*args)
+    except Exception:  # no flatbuffers, an unreadable or incompatible file: trace as usual
+        return None
+
+
+def _this_module() -> Any:
+    import sys
+
+    return sys.modules[__name__]
+
+
 @functools.lru_cache(maxsize=16)
 def _cached_build(models: tuple[_Model, ...], n_outputs: int, config: FitConfig) -> Callable:
     return _build(models, n_outputs, config)
+
+
+@functools.lru_cache(maxsize=32)
+def _interpreter_build(
+    n_regs: int, n_outputs: int, config: FitConfig, has_operator: bool
+) -> Callable:
+    """The ONE jitted fit of any batch of programs (see :mod:`jaxdmd.interp`).
+
+    Called as ``fn(code, X, targets, scale, op_index, op_weight, p)`` with ``code`` the packed
+    programs ``[C, L]``, ``X`` the variables ``[V, N]`` and ``p`` ``[C, R, P]``. Every shape is a
+    bucket (see :func:`_run_interpreter`), so the executable is reused from round to round; the
+    candidates are run one after the other (``lax.map``) so that the opcode of the interpreter's
+    ``lax.switch`` is never batched, restarts and Jacobian columns are vmapped.
+    """
+
+    def evaluate_all(code, pidx, X, targets, scale, op_index, op_weight, p, need, previous):
+        n_c, n_r, n_p = p.shape
+        n_l = pidx.shape[-1]
+        pmask = (pidx >= 0).astype(p.dtype)  # [C*K, Pl]
+        slot_k = jnp.tile(jnp.arange(n_outputs), n_c)
+        slot_c = jnp.repeat(jnp.arange(n_c), n_outputs)
+
+        def slot(args):
+            code_s, pidx_s, pmask_s, k, c, need_s, prev_s = args
+
+            def compute(_):
+                q = p[c][:, jnp.maximum(pidx_s, 0)] * pmask_s  # [R, Pl]
+                val, jac = interp.run(code_s, X, q, n_regs)
+                val, jac = val[:, 0], jac[:, 0]  # [R, N], [R, Pl, N]
+                if has_operator:
+                    val = jnp.sum(val[..., op_index] * op_weight, axis=-1)
+                    jac = jnp.sum(jac[..., op_index] * op_weight, axis=-1)
+                r = (val - targets[k]) * scale[k]
+                jac = jac * (scale[k] * pmask_s[:, None])
+                jac = jnp.where(jnp.isfinite(jac), jac, 0.0)
+                rf = jnp.where(jnp.isfinite(r), r, 0.0)
+                jtj = jnp.einsum("rpn,rqn->rpq", jac, jac)
+                jtr = jnp.einsum("rpn,rn->rp", jac, rf)
+                dep = jnp.any(jnp.sum(jnp.abs(jac), axis=-1) > 0, axis=0)
+                return _losses(r), jtj, jtr, dep
+
+            def skip(_):
+                z = jnp.zeros((n_r, n_l), p.dtype)
+                return prev_s, z[:, :, None] * z[:, None, :], z, jnp.zeros((n_l,), bool)
+
+            return lax.cond(need_s, compute, skip, None)
+
+        prev = jnp.swapaxes(previous, 1, 2).reshape(n_c * n_outputs, n_r)
+        args = (code, pidx, pmask, slot_k, slot_c, need.reshape(-1), prev)
+        loss, jtj, jtr, dep = lax.map(slot, args)
+        # back to global parameter indices: one-hot [C, K, Pl, P]
+        onehot = (pidx[..., None] == jnp.arange(n_p)).astype(p.dtype)
+        onehot = onehot.reshape(n_c, n_outputs, n_l, n_p)
+        jtj = jtj.reshape(n_c, n_outputs, n_r, n_l, n_l)
+        jtr = jtr.reshape(n_c, n_outputs, n_r, n_l)
+        jtj = jnp.einsum("ckap,ckrab,ckbq->crpq", onehot, jtj, onehot)
+        jtr = jnp.einsum("ckap,ckra->crp", onehot, jtr)
+        dep = jnp.einsum("ckap,cka->ckp", onehot, dep.reshape(n_c, n_outputs, n_l)) > 0
+        loss = jnp.swapaxes(loss.reshape(n_c, n_outputs, n_r), 1, 2)
+        return loss, jtj, jtr, dep
+
+    def adam(evaluate, p):
+        schedule = optax.cosine_decay_schedule(config.learning_rate, config.adam_steps)
+        opt = optax.adam(schedule)
+
+        def step(carry, _):
+            q, state = carry
+            need = jnp.ones((q.shape[0], n_outputs), bool)
+            prev = jnp.zeros((*q.shape[:2], n_outputs), q.dtype)
+            g = 2.0 * evaluate(q, need, prev)[2]  # d(sum NMSE)/dp = 2 J^T r (non-finite: 0)
+            upd, state = opt.update(g, state, q)
+            q_new = q + upd
+            return (jnp.where(jnp.isfinite(q_new), q_new, q), state), None
+
+        (p, _), _ = lax.scan(step, (p, opt.init(p)), None, length=config.adam_steps)
+        return p
+
+    def fit(code, pidx, X, targets, scale, op_index, op_weight, p):
+        evaluate = functools.partial(
+            evaluate_all, code, pidx, X, targets, scale, op_index, op_weight
+        )
+        if config.adam_steps > 0:
+            p = adam(evaluate, p)
+        return _levenberg_marquardt(evaluate, p, n_outputs, config)
+
+    key = repr(("interpreter", n_regs, n_outputs, config, has_operator))
+    return _compiled_caller(jax.jit(fit), config, export_key=key)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -447,32 +636,119 @@ def _check(
     return model, None
 
 
+def _probes(n_params: int, seed: int) -> np.ndarray:
+    """``p = 0``, the unit vectors and two random points: ``[n_params + 3, n_params]``."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate(
+        [np.zeros((1, n_params)), np.eye(n_params), rng.normal(0, 3, (2, n_params))]
+    )
+
+
+_EMPTY = interp.Program(
+    arguments=(), n_params=0, ops=np.zeros(0, np.int32), a=np.zeros(0, np.int32),
+    b=np.zeros(0, np.int32), c=np.zeros(0, np.int32), dst=np.zeros(0, np.int32),
+    imm=np.zeros(0), outputs=np.zeros(1, np.int32), n_regs=1, params=np.zeros(0, np.int32),
+    kinds=np.zeros((0, 3), np.int32), consts=np.zeros((0, 3)),
+)  # fmt: skip
+
+
+def _affine_groups(
+    program: interp.Program,
+    rows: np.ndarray,
+    seed: int,
+    targets: np.ndarray,
+    scale: np.ndarray,
+    operator: Operator | None,
+    config: FitConfig,
+) -> list[tuple[list[int], list[int], np.ndarray, np.ndarray]]:
+    """The groups of outputs (linked by shared parameters) that are affine in their parameters,
+    each solved exactly by :func:`_linear_fit`: ``(outputs, parameters, values, losses)``.
+
+    The outputs of a candidate that share no parameter are separate least-squares problems, so
+    the linear shortcut applies to each group on its own; only the other groups are left to the
+    Levenberg-Marquardt loop (their slots in the interpreter are empty).
+    """
+    parts = program.parts
+    n = targets.shape[1]
+    group = list(range(len(parts)))
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            k = group[k]
+        return k
+
+    owner: dict[int, int] = {}
+    for k, part in enumerate(parts):
+        for g in part.params.tolist():
+            if g in owner:
+                group[root(k)] = root(owner[g])
+            else:
+                owner[g] = k
+    found = []
+    for r in sorted({root(k) for k in range(len(parts))}):
+        outs = [k for k in range(len(parts)) if root(k) == r]
+        cols = sorted({g for k in outs for g in parts[k].params.tolist()})
+        if not cols:
+            continue
+        position = {g: j for j, g in enumerate(cols)}
+
+        def values(probes: np.ndarray, outs=outs, position=position) -> np.ndarray:
+            out = []
+            for k in outs:
+                local = [position[g] for g in parts[k].params.tolist()]
+                q = probes[:, local] if local else np.zeros((probes.shape[0], 1))
+                out.append(interp.evaluate_numpy(parts[k], list(rows), q, n)[:, 0])
+            v = np.stack(out, axis=1)
+            if operator is not None:
+                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
+                v = np.sum(v[..., index] * weight, axis=-1)
+            return v
+
+        fitted = _linear_fit(values, len(cols), seed, targets[outs], scale[outs], config)
+        if fitted is not None:
+            found.append((outs, cols, fitted.params, fitted.losses))
+    return found
+
+
+def _check_program(
+    skeleton: SkeletonLike,
+    data: Mapping[str, np.ndarray],
+    n_outputs: int,
+    operator: Operator | None = None,
+) -> tuple[_Model | None, str | None]:
+    """:func:`_check` for a lowered skeleton: nothing to trace, only names and counts."""
+    arguments = tuple(skeleton.arguments)
+    missing = [a for a in arguments if a not in data]
+    if missing:
+        return None, f"unknown variable(s): {', '.join(missing)}"
+    if int(skeleton.n_outputs) != n_outputs:
+        return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+    seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
+    return _Model(skeleton.fn, arguments, max(1, int(skeleton.n_params)), seed, operator), None
+
+
 def _linear_fit(
-    model: _Model,
+    values_at: Callable[[np.ndarray], Any],
     n_params: int,
-    data: Mapping[str, Array],
+    seed: int,
     targets: np.ndarray,
     scale: np.ndarray,
     config: FitConfig,
 ) -> FitResult | None:
     """The exact fit of a candidate that is affine in ``p``; None if it is not affine.
 
-    The candidate is evaluated eagerly (op by op, nothing compiled for it) at ``p = 0`` and at the
-    unit vectors, which gives ``pred(p) = b + A p`` if it is affine; affinity is then verified at
-    two random points (relative tolerance 1e-9). The weighted least-squares problem
+    ``values_at(probes [B, P])`` returns the predictions ``[B, K, N]`` (operator applied). The
+    candidate is evaluated at ``p = 0`` and at the unit vectors (on the host in NumPy for a
+    lowered program, else eagerly op by op: nothing is compiled for it), which gives
+    ``pred(p) = b + A p`` if it is affine; affinity is then verified at two random points
+    (relative tolerance 1e-9). The weighted least-squares problem
     ``min_p sum_k sum_n scale[k, n]**2 (b + A p - target)[k, n]**2`` (the summed NMSE) is solved
     with column equilibration and an SVD (minimum-norm where terms are collinear). This is what
     Levenberg-Marquardt converges to in one step, without its compile.
     """
-    k_out = targets.shape[0]
-    rng = np.random.default_rng(model.seed)
-    probes = np.concatenate(
-        [np.zeros((1, n_params)), np.eye(n_params), rng.normal(0, 3, (2, n_params))]
-    )
+    probes = _probes(n_params, seed)
     try:
-        values = np.asarray(
-            jax.vmap(lambda q: _predict(model, data, q, k_out))(jnp.asarray(probes))
-        )
+        values = np.asarray(values_at(probes), dtype=np.float64)
     except Exception:  # leave it to the general path, which reports the reason
         return None
     if not np.all(np.isfinite(values)):
@@ -616,12 +892,34 @@ def fit_batch(
 
     results: list[FitResult | None] = [None] * len(skeletons)
     models: dict[int, _Model] = {}
+    programs: dict[int, interp.Program] = {}
     for i, sk in enumerate(skeletons):
-        model, error = _check(sk, data, tgt, scale, operator)
+        program = interp.program_of(sk) if config.interpreter else None
+        if program is not None:
+            model, error = _check_program(sk, data_np, n_outputs, operator)
+            if model is not None:
+                programs[i] = program
+        else:
+            model, error = _check(sk, data, tgt, scale, operator)
         if model is None:
             results[i] = _dropped(sk, n_outputs, error or "unknown error")
         else:
             models[i] = model
+
+    # groups of outputs of a lowered candidate that are affine in their own parameters:
+    # candidate -> [(outputs, parameters, exact parameters, exact losses)]
+    exact: dict[int, list[tuple[list[int], list[int], np.ndarray, np.ndarray]]] = {}
+
+    def finish(indices: list[int], out: Any) -> None:
+        p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
+        for j, i in enumerate(indices):
+            params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
+            restarts = loss[j].copy()
+            for outs, cols, exact_params, exact_losses in exact.get(i, []):
+                params[cols] = exact_params
+                losses[outs] = exact_losses
+                restarts[:, outs] = exact_losses
+            results[i] = _result(int(skeletons[i].n_params), params, losses, restarts, config)
 
     def run(indices: list[int]) -> None:
         batch = tuple(models[i] for i in indices)
@@ -631,26 +929,101 @@ def fit_batch(
         p0 = np.zeros((len(batch), config.restarts, pmax))
         for j, m in enumerate(batch):
             p0[j, :, : m.n_params] = _initial_params(m, key_data, config)
-        out = fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0))
-        p, loss, dep, _ = (np.asarray(x) for x in jax.device_get(out))
-        for j, i in enumerate(indices):
-            params, losses = _select(p[j], loss[j], dep[j], config.combine_restarts)
-            results[i] = _result(int(skeletons[i].n_params), params, losses, loss[j], config)
+        finish(indices, fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0)))
+
+    features: dict[int, np.ndarray] = {}
+
+    def feature_values(i: int) -> np.ndarray:
+        if i not in features:
+            args = [data_np[a] for a in programs[i].arguments]
+            features[i] = programs[i].feature_values(args)
+        return features[i]
+
+    def run_programs(indices: list[int]) -> None:
+        chunk = max(1, config.interpreter_chunk)
+        pmax = interp.bucket(max(models[i].n_params for i in indices), 4)
+        parts_of = {i: programs[i].parts for i in indices}
+        n_local = interp.bucket(max(q.n_params for i in indices for q in parts_of[i]), 2)
+        n_regs = interp.bucket(max(q.n_regs for i in indices for q in parts_of[i]), 8)
+        fn = _interpreter_build(n_regs, n_outputs, config, operator is not None)
+        if operator is None:
+            op_index, op_weight = jnp.zeros((1, 1), jnp.int64), jnp.zeros((1, 1))
+        else:
+            op_index, op_weight = operator.index, operator.weight
+        chunks = [indices[s : s + chunk] for s in range(0, len(indices), chunk)]
+        n_rows = interp.bucket(max(sum(len(feature_values(i)) for i in c) for c in chunks), 16)
+        for part in chunks:
+            rows = [feature_values(i) for i in part]
+            offsets = np.cumsum([0] + [len(r) for r in rows])[:-1]
+            x = np.zeros((n_rows, n))
+            x[: sum(len(r) for r in rows)] = np.concatenate(rows)
+            solved = {i: {k for outs, *_ in exact.get(i, []) for k in outs} for i in part}
+            slots = [
+                _EMPTY if k in solved[i] else q
+                for i in part
+                for k, q in enumerate(parts_of[i])
+            ]
+            slot_offsets = [o for o, i in zip(offsets, part, strict=True) for _ in parts_of[i]]
+            code = interp.pack(slots, slot_offsets, interp.MAX_INSTRUCTIONS, chunk * n_outputs)
+            pidx = np.full((chunk * n_outputs, n_local), -1, np.int32)
+            for j, q in enumerate(slots):
+                pidx[j, : q.n_params] = q.params
+            p0 = np.zeros((chunk, config.restarts, pmax))
+            for j, i in enumerate(part):
+                p0[j, :, : models[i].n_params] = _initial_params(models[i], key_data, config)
+            code_j = {k: jnp.asarray(v) for k, v in code.items()}
+            args = (jnp.asarray(x), tgt, scale, op_index, op_weight, jnp.asarray(p0))
+            finish(part, fn(code_j, jnp.asarray(pidx), *args))
+
+    def values_at(i: int) -> Callable[[np.ndarray], Any]:
+        if i in programs:
+            def numpy_values(probes: np.ndarray) -> np.ndarray:
+                rows = list(feature_values(i))
+                values = interp.evaluate_numpy(programs[i], rows, probes, n)
+                if operator is None:
+                    return values
+                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
+                return np.sum(values[..., index] * weight, axis=-1)
+
+            return numpy_values
+        model = models[i]
+        return lambda probes: jax.vmap(lambda q: _predict(model, data, q, n_outputs))(
+            jnp.asarray(probes)
+        )
 
     key_data = np.asarray(jax.random.key_data(key))
     if config.linear_shortcut:
         for i in list(models):
-            fitted = _linear_fit(models[i], models[i].n_params, data, targets_np, scale_np, config)
+            m = models[i]
+            fitted = _linear_fit(values_at(i), m.n_params, m.seed, targets_np, scale_np, config)
             if fitted is not None:
                 n_real = int(skeletons[i].n_params)
                 results[i] = dataclasses.replace(fitted, params=fitted.params[:n_real])
                 del models[i]
-    if models:
+    lowered = [i for i in models if i in programs]
+    if config.linear_shortcut:
+        for i in lowered:
+            exact[i] = _affine_groups(
+                programs[i], feature_values(i), models[i].seed, targets_np, scale_np, operator,
+                config,
+            )  # fmt: skip
+    if lowered:
         try:
-            run(list(models))
+            run_programs(lowered)
+        except Exception:  # the interpreter failed (a bug): fit these through their functions
+            for i in lowered:
+                del programs[i]
+                model, error = _check(skeletons[i], data, tgt, scale, operator)
+                if model is None:
+                    results[i] = _dropped(skeletons[i], n_outputs, error or "unknown error")
+                    del models[i]
+    rest = [i for i in models if i not in programs]
+    if rest:
+        try:
+            run(rest)
         except Exception:
             # a candidate broke the fused compile or run: fit one by one to isolate it
-            for i in models:
+            for i in rest:
                 try:
                     run([i])
                 except Exception as exc:

@@ -1026,6 +1026,9 @@ def _build(
         {f"_k{i}": jnp.asarray(v, dtype=dtype) for i, v in enumerate(rewriter.constants)}
     )
     exec(code, namespace)  # defines the function only: no defaults, decorators or annotations
+    from jaxdmd import interp  # (circular import at module level)
+
+    interp.register(namespace[fdef.name], source)  # the fitter runs it as a program instead
     return Skeleton(
         source=source,
         name=fdef.name,
