@@ -489,9 +489,9 @@ def _exported(jitted: Any, args: tuple, key: str, sig: Any) -> Any:
 
     modules = (interp, interp.sk, _this_module())  # the interpreter, its functions, the LM
     sources = b"".join(pathlib.Path(m.__file__).read_bytes() for m in modules)
-    digest = hashlib.sha256(
-        repr((key, str(sig), jax.__version__)).encode() + sources
-    ).hexdigest()[:32]
+    digest = hashlib.sha256(repr((key, str(sig), jax.__version__)).encode() + sources).hexdigest()[
+        :32
+    ]
     path = pathlib.Path(cache_dir) / f"jaxdmd-fit-{digest}.jaxexport"
     try:
         if path.exists():
@@ -959,9 +959,7 @@ def fit_batch(
             x[: sum(len(r) for r in rows)] = np.concatenate(rows)
             solved = {i: {k for outs, *_ in exact.get(i, []) for k in outs} for i in part}
             slots = [
-                _EMPTY if k in solved[i] else q
-                for i in part
-                for k, q in enumerate(parts_of[i])
+                _EMPTY if k in solved[i] else q for i in part for k, q in enumerate(parts_of[i])
             ]
             slot_offsets = [o for o, i in zip(offsets, part, strict=True) for _ in parts_of[i]]
             code = interp.pack(slots, slot_offsets, interp.MAX_INSTRUCTIONS, chunk * n_outputs)
@@ -977,6 +975,7 @@ def fit_batch(
 
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:
+
             def numpy_values(probes: np.ndarray) -> np.ndarray:
                 rows = list(feature_values(i))
                 values = interp.evaluate_numpy(programs[i], rows, probes, n)
