@@ -304,6 +304,14 @@ def markdown(result: Mapping[str, Any]) -> str:
             + " |"
         )
     g = result["goal"]
+    if result.get("sum_generator_wall_time_s") is not None:
+        lines += [
+            "",
+            f"Wall time on this 2-core machine (shared with other jobs): "
+            f"{_fmt(result.get('sum_generator_wall_time_s'), '.0f')} s summed over the "
+            f"generators (simulation of the protocol once, plus "
+            f"{_fmt(result.get('data_wall_time_s'), '.0f')} s); commit {s.get('commit')}.",
+        ]
     lines += [
         "",
         f"Goal (jaxdmd full DAE): MAPE <= {GOAL['mape']} % -> {_fmt(g['mape'], '.4g')} % "
@@ -736,6 +744,10 @@ def collect(out: Path, settings: Mapping[str, Any], wall: float | None) -> dict[
     mean = aggregate(per)
     return {
         "settings": dict(settings),
+        "data_wall_time_s": next(
+            (p.get("data_wall_time_s") for p in per.values() if "data_wall_time_s" in p), None
+        ),
+        "sum_generator_wall_time_s": sum(float(p.get("wall_time_s", 0.0)) for p in per.values()),
         "generators_done": sorted(per),
         "generators": {str(g): per[g] for g in sorted(per)},
         "mean": mean,
@@ -758,6 +770,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from jaxdmd.search import write_json_atomic
 
     settings["commit"] = _commit()
+    if args.resume and saved.exists():  # keep the first commit, list the resumed ones
+        old = json.loads(saved.read_text())
+        settings["commit"] = old.get("commit")
+        settings["resumed_at"] = [*old.get("resumed_at", []), _commit()]
     write_json_atomic(saved, settings)
     start = time.perf_counter()
 
