@@ -24,7 +24,9 @@ Outputs in ``--out``: ``generators/gen<bus>.json`` (per generator, written atomi
 finishes; ``--resume`` skips the finished ones), ``generators/gen<bus>_traj.npz`` (the simulated
 trajectories of test point 0), ``runs/gen<bus>/`` (the discovery's outputs and checkpoints),
 ``table1.json``, ``table1.md`` and ``table1.png`` (measured vs simulated, one generator).
-``--docs FILE`` also replaces the ``## Table I`` section of that Markdown file.
+``--docs FILE`` also replaces the ``## Table I`` section of that Markdown file (and only that
+section), ``--note FILE`` appends a hand-written discussion to it. ``--resume`` with nothing left
+to do only rewrites the table, the plot and the docs section from the per-generator files.
 
 Ground truth (the true structure of the oracle) lives here, never in ``jaxdmd/``.
 
@@ -700,6 +702,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-recombine", action="store_true")
     p.add_argument("--plot-generator", type=int, default=31)
     p.add_argument("--docs", help="replace the '## Table I' section of this Markdown file")
+    p.add_argument("--note", help="Markdown file appended to the table (e.g. the discussion)")
     p.add_argument("--quiet-rounds", action="store_true", help="no per-round discovery lines")
     return p
 
@@ -839,6 +842,8 @@ def write_table(
     if not result["generators_done"]:
         return result
     md = markdown(result)
+    if args.note:
+        md += "\n" + Path(args.note).read_text()
     (out / "table1.md").write_text(md)
     print(md, flush=True)
     gen = args.plot_generator
