@@ -676,7 +676,7 @@ def plot(path: Path, gen: int, traj: Mapping[str, np.ndarray], rows: Mapping[str
         ax.set_ylabel(s)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8, ncol=4)
-    axes[0].set_title(f"Generator {gen}, bus-28 fault, test point 0 (SINDy clipped to the axes)")
+    axes[0].set_title(f"Generator {gen}, bus-28 fault, test point 0 (curves clipped to the axes)")
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
