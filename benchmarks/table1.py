@@ -311,8 +311,8 @@ def markdown(result: Mapping[str, Any]) -> str:
             "",
             f"Wall time on this 2-core machine (shared with other jobs): "
             f"{_fmt(result.get('sum_generator_wall_time_s'), '.0f')} s summed over the "
-            f"generators (simulation of the protocol once, plus "
-            f"{_fmt(result.get('data_wall_time_s'), '.0f')} s); commit {s.get('commit')}.",
+            f"generators, plus {_fmt(result.get('data_wall_time_s'), '.0f')} s to simulate the "
+            f"protocol once; commit {s.get('commit')}.",
         ]
     lines += [
         "",
