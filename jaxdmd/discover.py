@@ -72,8 +72,57 @@ def matched_operator(datasets: Sequence[Dataset]) -> Operator:
     return Operator(index, weight)
 
 
+def integral_operator(datasets: Sequence[Dataset], width: float) -> tuple[Operator, np.ndarray]:
+    """The integral (weak) form of state equations over concatenated recordings.
+
+    Row i integrates a prediction over ``[t_i, t_i + width]`` (trapezoid rule, never across a
+    recording's end; near the end the window is shorter, and the last sample's row covers the
+    interval before it). Returns the operator and, for each row, the sample index pair
+    ``(first, last)`` of its window, so that the targets are ``x[last] - x[first]``: no
+    derivative estimate is needed, and the noise of the states enters only at the two ends.
+    """
+    if width <= 0:
+        raise ValueError(f"the integration window must be positive, got {width}")
+    rows_index, rows_weight, ends, offset = [], [], [], 0
+    for ds in datasets:
+        t = np.asarray(ds.t, dtype=np.float64)
+        n = t.shape[0]
+        if n < 2:
+            raise ValueError(f"recording {ds.label or '?'} has fewer than two samples")
+        first = np.arange(n)
+        last = np.minimum(np.searchsorted(t, t + width, side="right") - 1, n - 1)
+        last = np.maximum(last, first + 1)
+        first = np.where(last > n - 1, n - 2, first)
+        last = np.minimum(last, n - 1)
+        span = int(np.max(last - first)) + 1
+        k = first[:, None] + np.arange(span)[None, :]
+        inside = k <= last[:, None]
+        k = np.where(inside, k, last[:, None])
+        dt = np.diff(t)
+        # trapezoid: sample k gets (dt_{k-1} + dt_k) / 2 of the intervals inside the window
+        left = np.where(k > first[:, None], dt[np.maximum(k - 1, 0)], 0.0)
+        right = np.where(k < last[:, None], dt[np.minimum(k, n - 2)], 0.0)
+        rows_index.append(k + offset)
+        rows_weight.append(np.where(inside, 0.5 * (left + right), 0.0))
+        ends.append(np.stack([first, last], axis=1) + offset)
+        offset += n
+    width_max = max(i.shape[1] for i in rows_index)
+    index = np.concatenate(
+        [np.pad(i, [(0, 0), (0, width_max - i.shape[1])], mode="edge") for i in rows_index]
+    )
+    weight = np.concatenate([np.pad(w, [(0, 0), (0, width_max - w.shape[1])]) for w in rows_weight])
+    return Operator(index, weight), np.concatenate(ends)
+
+
 def de_problem(
-    datasets: Sequence[Dataset], system: str = "synchronous generator", *, matched: bool = False
+    datasets: Sequence[Dataset],
+    system: str = "synchronous generator",
+    *,
+    matched: bool = False,
+    states: Sequence[str] | None = None,
+    library: Sequence[str] = (),
+    groups: np.ndarray | None = None,
+    integral: float | None = None,
 ) -> tuple[Problem, Contract]:
     """The DE loop's problem: state derivatives from every recording, the catalog, the contract.
 
@@ -81,30 +130,49 @@ def de_problem(
     :func:`jaxdmd.data.differentiate` (``Dataset.create`` without derivatives, or
     ``with_estimated_derivatives()``): predictions are then smoothed like the estimates
     (:func:`matched_operator`), which removes the estimator's bias at fast transients.
+
+    ``states`` (default: every state channel) are the targets; ``library`` the variables the
+    search starts with; every other channel (other states included) is the catalog. ``groups``
+    overrides the recording index of each sample used for cross-validation. With ``integral``
+    (seconds), the equations are fitted in their integral form (:func:`integral_operator`):
+    targets are the states' increments over windows of that width, derivatives are not used.
     """
     datasets = list(datasets)
     first = datasets[0]
     if not first.state_names:
         raise ValueError("the data have no state channels (role 'state')")
-    states = first.state_names
+    states = tuple(first.state_names if states is None else states)
+    for name in (*states, *library):
+        if name not in first:
+            raise ValueError(f"the data have no channel {name!r}; they have {list(first.names)}")
+    for name in states:
+        if first.role(name) != "state":
+            raise ValueError(
+                f"{name!r} is not a state channel of the data (role {first.role(name)!r})"
+            )
     variables = _stack(datasets)
-    targets = jnp.stack(
-        [jnp.asarray(np.concatenate([ds.derivative(s) for ds in datasets])) for s in states]
-    )
-    others = [n for n in first.names if first.role(n) != "state"]
+    operator = matched_operator(datasets) if matched else None
+    if integral is not None:
+        operator, ends = integral_operator(datasets, integral)
+        targets = jnp.stack([variables[s][ends[:, 1]] - variables[s][ends[:, 0]] for s in states])
+    else:
+        targets = jnp.stack(
+            [jnp.asarray(np.concatenate([ds.derivative(s) for ds in datasets])) for s in states]
+        )
+    others = [n for n in first.names if n not in states and n not in library]
     problem = Problem(
         variables=variables,
         targets=targets,
         target_names=states,
         catalog=_variables(first, others),
-        operator=matched_operator(datasets) if matched else None,
-        groups=_groups(datasets),
+        operator=operator,
+        groups=_groups(datasets) if groups is None else jnp.asarray(groups),
     )
     contract = Contract(
         loop="DE",
         targets=states,
         states=_variables(first, states),
-        library=(),
+        library=_variables(first, library),
         function_name="equation",
         system=system,
     )

@@ -141,3 +141,25 @@ def test_example_custom_loop_runs():
     assert result.returncode == 0, result.stderr[-3000:]
     assert "library [P_e" in result.stdout  # the hidden variable was brought in
     assert "domega/dt" in result.stdout
+
+
+@pytest.mark.slow
+def test_example_diagnose_runs(tmp_path):
+    done = subprocess.run(
+        [
+            sys.executable,
+            "examples/diagnose_your_model.py",
+            "--out",
+            str(tmp_path),
+            "--rounds",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "cause (missing term)" in done.stdout
+    assert (tmp_path / "report" / "report.md").exists()
+    assert len(list((tmp_path / "recordings").glob("*.csv.json"))) == 4

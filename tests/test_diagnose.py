@@ -1,0 +1,298 @@
+"""The discrepancy report: hidden effects in simulated data must be named, recovered and pay off.
+
+Each scenario simulates the IEEE 39-bus system with an effect the starting model lacks (the
+truth lives here, in the test, and nowhere in the engine), diagnoses generator 31 with three
+noisy bus-15-fault recordings, and checks the result on a clean bus-28-fault recording:
+
+- the diagnosis names the right equation and variable;
+- the extended model has the effect's coefficient within 5 % (read off the fitted equation by
+  automatic differentiation, so that any way of writing it counts);
+- the held-out simulation error (mean NRMSE of the model's states) falls at least tenfold.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdmd.diagnose import (
+    DiagnoseConfig,
+    builtin_model,
+    diagnose,
+    load_model,
+    parse_model,
+    split_held_out,
+    write_report,
+)
+from jaxdmd.grid import Exciter, Governor, MachineModel, paper_protocol
+from jaxdmd.grid.machines import machine_params, saturation_coefficients
+from jaxdmd.search import Equations
+
+GEN = 31
+NOISE = 0.005  # of each state's range
+
+
+def recordings(model: MachineModel, keep: tuple[str, ...] | None = None, noise: float = NOISE):
+    data = paper_protocol(n_train=3, n_test=1, noise=noise, model=model, generators=[GEN])
+    train, test = list(data.train[GEN]), list(data.test[GEN])
+    if keep is not None:
+
+        def select(ds):
+            return ds.select([*ds.state_names, *keep])
+
+        train, test = [select(ds) for ds in train], [select(ds) for ds in test]
+    return train, test
+
+
+def machine(model: MachineModel, name: str) -> float:
+    from jaxdmd.grid.network import case39
+
+    return float(getattr(machine_params(model), name)[case39().gen_index(GEN)])
+
+
+def derivative(eq: Equations, output: str, variable: str, at: dict[str, float], order: int = 1):
+    """d^order f_output / d variable^order of a fitted equation at a point (other inputs held)."""
+    sk = eq.skeleton()
+    j = eq.contract.targets.index(output)
+    point = {a: jnp.asarray(at[a]) for a in sk.arguments}
+
+    def f(x):
+        return sk({**point, variable: x}, jnp.asarray(eq.params))[j]
+
+    for _ in range(order):
+        f = jax.grad(f)
+    return float(f(point[variable]))
+
+
+def mean_point(datasets) -> dict[str, float]:
+    return {n: float(np.mean([np.mean(ds[n]) for ds in datasets])) for n in datasets[0].names}
+
+
+def check_gain(result, factor: float = 10.0) -> None:
+    before = result.metrics["given" if "given" in result.metrics else "refit"]["nrmse"]
+    after = result.metrics["extended"]["nrmse"]
+    assert before / after >= factor, (before, after, result.metrics)
+
+
+# ------------------------------------------------------------------------------------------------
+# hidden effects
+
+
+@pytest.fixture(scope="module")
+def damping_data():
+    model = MachineModel(name="classical", damping=20.0)
+    return model, *recordings(model)
+
+
+@pytest.mark.slow
+def test_missing_damping_is_named_recovered_and_pays(damping_data, tmp_path):
+    truth, train, test = damping_data
+    result = diagnose(train, builtin_model("classical"), test=test, key=jax.random.key(0))
+    assert result.cause.kind == "missing term", result.cause
+    assert result.cause.equation == "omega"
+    assert result.cause.variables == ("omega",)
+    # the extended swing equation: d omega/dt = (P_m - P_e - D (omega - 1)) / M
+    M, D = machine(truth, "M"), machine(truth, "D")
+    slope = derivative(result.extended, "omega", "omega", mean_point(train))
+    assert slope == pytest.approx(-D / M, rel=0.05)
+    check_gain(result)
+    # the report is written and its JSON carries the cause and the metrics
+    write_report(tmp_path, result)
+    saved = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert saved["cause"]["equation"] == "omega" and saved["gain"] >= 10
+    assert (tmp_path / "report.md").read_text().count("omega") > 3
+    assert (tmp_path / "trajectories.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_blocked_governor_model_misses_p_m():
+    """The plant's governor moves P_m; the engineer's model assumed constant mechanical power."""
+    truth = MachineModel(name="classical", governor=Governor(droop=0.05, T_g=0.5))
+    train, test = recordings(truth)
+    model = parse_model(
+        "def equation(omega, P_e, p):\n"
+        "    d_delta = p[0] * (omega - 1)\n"
+        "    d_omega = p[1] + p[2] * P_e  # P_m constant\n"
+        "    return d_delta, d_omega\n",
+        name="constant-power.py",
+        states=train[0].state_names,
+    )
+    result = diagnose(train, model, test=test, key=jax.random.key(1))
+    assert result.cause.kind == "missing variable", result.cause
+    assert result.cause.equation == "omega"
+    assert result.cause.variables == ("P_m",)
+    M = machine(truth, "M")
+    gain = derivative(result.extended, "omega", "P_m", mean_point(train))
+    assert gain == pytest.approx(1 / M, rel=0.05)
+    check_gain(result)
+
+
+@pytest.mark.slow
+def test_field_saturation_is_found_as_a_nonlinearity():
+    """Saturation of the field winding: f_s(e'_q) quadratic instead of e'_q (one-axis model).
+
+    Identifiability decides the set-up. The recording holds the machine-side channels (states,
+    P_e, i_d and the inputs): with the stator voltages in the catalog the saturation has exact
+    stand-ins (v_q = e'_q - x'_d i_d - r_a i_q makes e'_q v_q and e'_q^2 interchangeable). The
+    AVR moves v_f within each recording (with v_f constant per recording, v_f and the offset of
+    f_s are told apart by three values only), and the noise is 0.1 % of the range: at 0.5 % the
+    true structure refitted by least squares misses the quadratic coefficient by 4 % (with the
+    AVR) to 19 % (without), measured on this data.
+    """
+    s10, s12 = 0.1, 0.3
+    truth = MachineModel(name="one-axis", saturation=(s10, s12), exciter=Exciter())
+    train, test = recordings(truth, keep=("P_e", "i_d", "P_m", "v_f"), noise=0.001)
+    result = diagnose(train, builtin_model("one-axis", train[0].names), test=test)
+    assert result.cause.kind == "missing term", result.cause
+    assert result.cause.equation == "e_qp"
+    assert result.cause.variables == ("e_qp",)
+    # T'_d0 de'_q/dt = v_f - f_s(e'_q) - ..., f_s = c0 + c1 e + c2 e^2 above 0.8
+    c2 = saturation_coefficients(s10, s12)[2]
+    T = machine(truth, "T_dp0")
+    curvature = derivative(result.extended, "e_qp", "e_qp", mean_point(train), order=2) / 2
+    assert curvature == pytest.approx(-c2 / T, rel=0.05)
+    check_gain(result)
+
+
+@pytest.mark.slow
+def test_wrong_parameters_are_a_parameter_error(damping_data):
+    """The right structure with a wrong inertia and damping: a parameter error, not a term."""
+    truth, train, test = damping_data
+    M, D = machine(truth, "M"), machine(truth, "D")
+    omega_b = 2 * np.pi * 60
+    wrong = [omega_b, 1.3 / M, -1.3 / M, -0.5 * D / M]  # M 30 % low, D halved
+    model = parse_model(
+        "def equation(omega, P_m, P_e, p):\n"
+        "    return p[0] * (omega - 1), p[1] * P_m + p[2] * P_e + p[3] * (omega - 1)\n"
+        f"PARAMS = {wrong!r}\n"
+        "TARGETS = ['delta', 'omega']\n",
+        name="swing.py",
+    )
+    result = diagnose(train, model, test=test, config=DiagnoseConfig(rounds=0))
+    assert result.cause.kind == "parameter", result.cause
+    assert result.extended is None
+    assert result.metrics["given"]["nrmse"] > 2 * result.metrics["refit"]["nrmse"]
+
+
+# ------------------------------------------------------------------------------------------------
+# models and bad input
+
+
+def test_builtin_models_follow_the_data_channels():
+    full = builtin_model("psat-5.1")
+    assert full.targets == ("delta", "omega", "e_qp", "e_dp", "e_dpp")
+    assert {"P_m", "v_f", "i_d", "i_q", "P_e"} <= set(full.arguments)
+    assert full.skeleton().n_params == 12
+    bare = builtin_model("one-axis", channels=("P_e", "i_d"))  # no measured inputs
+    assert "P_m" not in bare.arguments and "v_f" not in bare.arguments
+    assert builtin_model("order-2").name == "classical"
+    with pytest.raises(ValueError, match="unknown built-in model 'sixth-order'"):
+        builtin_model("sixth-order")
+
+
+def test_model_file_is_parsed_without_running_it(tmp_path):
+    marker = tmp_path / "ran"
+    text = (
+        f"open({str(marker)!r}, 'w').write('x')\n"
+        "def equation(omega, P_e, p):\n"
+        "    return p[0] * (omega - 1), p[1] + p[2] * P_e\n"
+        "DE_PARAMS = [377.0, 0.1, -0.016]\n"
+    )
+    model = parse_model(text, states=("delta", "omega"))
+    assert not marker.exists()
+    assert model.targets == ("delta", "omega")  # from the data's states, in order
+    assert model.params == (377.0, 0.1, -0.016)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("def equation(omega, p:\n", "not Python"),
+        ("x = 1\n", "no function"),
+        ("def equation(omega, p):\n    return __import__('os')\n", "skeleton check"),
+        ("def equation(omega, p):\n    return p[0] * omega\nPARAMS = [1, 'a']\n", "finite numbers"),
+        (
+            "def equation(omega, p):\n    return p[0] * p[1] * omega\nPARAMS = [1.0]\n",
+            "2 parameters",
+        ),
+        ("def equation(omega, p):\n    return p[0]\nPARAMS = eval('1')\n", "literal list"),
+    ],
+)
+def test_bad_model_files_are_clear_errors(text, message):
+    with pytest.raises(ValueError, match=message):
+        parse_model(text, name="m.py", states=("delta", "omega"))
+
+
+def test_data_without_the_model_channels_is_a_clear_error(damping_data):
+    _, train, test = damping_data
+    crippled = [ds.select([n for n in ds.names if n != "P_e"]) for ds in train]
+    with pytest.raises(ValueError, match=r"lack the channels .* P_e"):
+        diagnose(crippled, builtin_model("classical"), test=test)
+    with pytest.raises(ValueError, match="cannot read the model file"):
+        load_model(str(Path("/nonexistent/model.py")))
+
+
+def test_single_recording_holds_out_its_end(damping_data):
+    _, train, _ = damping_data
+    fit, held, text = split_held_out(train[:1], None)
+    assert fit[0].t[-1] <= held[0].t[0] and "last 30%" in text
+    fit, held, text = split_held_out(train, None)
+    assert len(fit) == len(train) - 1 and held[0] is train[-1]
+
+
+@pytest.mark.slow
+def test_cli_diagnose_writes_the_report(damping_data, tmp_path):
+    _, train, test = damping_data
+    paths = []
+    for i, ds in enumerate([*train, *test]):
+        paths.append(str(ds.save(tmp_path / f"rec{i}.npz")))
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    args = [sys.executable, "-m", "jaxdmd.run", "diagnose", "--data", *paths[:-1]]
+    done = subprocess.run(
+        [*args, "--test-data", paths[-1], "--model", "classical", "--out", str(out),
+         "--rounds", "4"],
+        capture_output=True, text=True, env=env, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    saved = json.loads((out / "diagnosis.json").read_text())
+    assert saved["cause"]["equation"] == "omega"
+    assert {"cause", "metrics", "errors", "candidates", "models", "gain"} <= set(saved)
+    assert "missing term" in done.stderr
+    # a model file that does not parse: one line, exit 2, no traceback
+    bad = tmp_path / "bad.py"
+    bad.write_text("def equation(omega, p:\n")
+    done = subprocess.run(
+        [*args, "--model", str(bad), "--out", str(out)], capture_output=True, text=True, env=env
+    )
+    assert done.returncode == 2 and "not Python" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_integral_operator_integrates_within_each_recording():
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import integral_operator
+
+    t = np.linspace(0.0, 2.0, 201)
+    dxdt = {"x": 3 * np.cos(3 * t)}
+    rec = [
+        Dataset.create(t, {"x": np.sin(3 * t) + k}, {"x": "state"}, derivatives=dxdt)
+        for k in (0, 5)
+    ]
+    op, ends = integral_operator(rec, width=0.5)
+    x = np.concatenate([ds["x"] for ds in rec])
+    dx = np.concatenate([ds.derivative("x") for ds in rec])
+    increments = x[ends[:, 1]] - x[ends[:, 0]]
+    assert np.max(np.abs(np.asarray(op(jnp.asarray(dx))) - increments)) < 1e-3  # trapezoid
+    assert np.all((ends[:, 0] < 201) == (ends[:, 1] < 201))  # no window spans two recordings
+    assert np.all(ends[:, 1] > ends[:, 0])
+    with pytest.raises(ValueError, match="positive"):
+        integral_operator(rec, width=0.0)
