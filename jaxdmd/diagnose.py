@@ -27,7 +27,6 @@ offline proposer draws from). :func:`write_report` writes ``report.md`` with plo
 from __future__ import annotations
 
 import ast
-import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -761,34 +760,19 @@ def diagnose(
     joined: tuple[str, ...] = ()
     if cause.kind in ("missing variable", "missing term") and config.rounds > 0:
         state, suggestions = _offer(state, model, ranking, flagged, cause)
-        first_round = True
-
-        class _Seeded:  # the first round gets the diagnosis's suggestions on top
-            def __init__(self, inner: OfflineProposer):
-                self.inner = inner
-
-            def propose(self, requests):  # type: ignore[no-untyped-def]
-                nonlocal first_round
-                samples = list(self.inner.propose(requests))
-                if first_round:
-                    first_round = False
-                    samples += [Sample(text=s, island=0, origin="diagnosis") for s in suggestions]
-                return samples
-
         state = search.replace_state(state, key=k_search)
-        state = run_loop(
-            state, _Seeded(OfflineProposer.for_problem(state.problem)), on_round=on_round
-        )
+        proposer = _WithSuggestions(OfflineProposer.for_problem(state.problem), suggestions)
+        state = run_loop(state, proposer, on_round=on_round)
         extended = _keep_unflagged(
             # no absolute floor: NMSEs of the integral form are far below the derivatives'
             search.final_equations(state, floor=0.0),
             refit,
-            {c.equation for c in (*flagged,)},
+            {c.equation for c in flagged},
             state,
         )
         coefs = coefficients(extended)
         rounds = state.iteration
-        joined = tuple(n for n, r in state.joined if r > 0)
+        joined = tuple(v.name for v in state.contract.library if v.name not in model.arguments)
         held_metrics["extended"], runs["extended"] = _held_out_metrics(_eq_block(extended), held)
         nmse["extended"] = dict(zip(extended.contract.targets, extended.losses, strict=True))
     return Diagnosis(
@@ -811,6 +795,19 @@ def diagnose(
         wall_time_s=time.perf_counter() - start,
         window=config.window,
     )
+
+
+@dataclass
+class _WithSuggestions:
+    """The offline proposer, its first round topped up with the diagnosis's suggestions."""
+
+    inner: OfflineProposer
+    suggestions: list[str]
+
+    def propose(self, requests: Sequence[Any]) -> list[Sample]:
+        extra, self.suggestions = self.suggestions, []
+        samples = list(self.inner.propose(requests))
+        return samples + [Sample(text=text, island=0, origin="diagnosis") for text in extra]
 
 
 def _keep_unflagged(
@@ -1061,7 +1058,3 @@ def write_report(out: str | Path, d: Diagnosis) -> Path:
     path = out / "report.md"
     path.write_text(report_markdown(d))
     return path
-
-
-def dumps(d: Diagnosis) -> str:
-    return json.dumps(d.to_dict(), indent=2)
