@@ -610,6 +610,16 @@ def _interpreter_build(
 # Checking candidates and the public entry point
 
 
+def _mismatch(skeleton: SkeletonLike, data: Mapping[str, Any], n_outputs: int) -> str | None:
+    """Why a candidate cannot be fitted to these data at all (unknown names, output count)."""
+    missing = [a for a in skeleton.arguments if a not in data]
+    if missing:
+        return f"unknown variable(s): {', '.join(missing)}"
+    if int(skeleton.n_outputs) != n_outputs:
+        return f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+    return None
+
+
 def _check(
     skeleton: SkeletonLike,
     data: Mapping[str, Array],
@@ -621,11 +631,9 @@ def _check(
     n_outputs = targets.shape[0]
     try:
         arguments = tuple(skeleton.arguments)
-        missing = [a for a in arguments if a not in data]
-        if missing:
-            return None, f"unknown variable(s): {', '.join(missing)}"
-        if int(skeleton.n_outputs) != n_outputs:
-            return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+        mismatch = _mismatch(skeleton, data, n_outputs)
+        if mismatch is not None:
+            return None, mismatch
         n_params = max(1, int(skeleton.n_params))
         seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
         model = _Model(skeleton.fn, arguments, n_params, seed, operator)
@@ -718,11 +726,9 @@ def _check_program(
 ) -> tuple[_Model | None, str | None]:
     """:func:`_check` for a lowered skeleton: nothing to trace, only names and counts."""
     arguments = tuple(skeleton.arguments)
-    missing = [a for a in arguments if a not in data]
-    if missing:
-        return None, f"unknown variable(s): {', '.join(missing)}"
-    if int(skeleton.n_outputs) != n_outputs:
-        return None, f"has {skeleton.n_outputs} outputs, the targets have {n_outputs}"
+    mismatch = _mismatch(skeleton, data, n_outputs)
+    if mismatch is not None:
+        return None, mismatch
     seed = zlib.crc32(str(skeleton.source).encode()) & 0x7FFFFFFF
     return _Model(skeleton.fn, arguments, max(1, int(skeleton.n_params)), seed, operator), None
 
