@@ -315,7 +315,7 @@ def markdown(result: Mapping[str, Any]) -> str:
     if result.get("sum_generator_wall_time_s") is not None:
         lines += [
             "",
-            f"Wall time on this 2-core machine (shared with other jobs): "
+            f"Wall time on this 2-core machine: "
             f"{_fmt(result.get('sum_generator_wall_time_s'), '.0f')} s summed over the "
             f"generators, plus {_fmt(result.get('data_wall_time_s'), '.0f')} s to simulate the "
             f"protocol once; commit {s.get('commit')}.",
