@@ -810,17 +810,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     todo = [g for g in args.generators if not (args.resume and done(g))]
     _log(f"generators {args.generators}; to do {todo}; settings {settings}")
     if todo:
-        from jaxdmd.grid import Exciter, Governor, MachineModel, paper_protocol
+        from jaxdmd.run import benchmark_protocol
 
         t0 = time.perf_counter()
-        data = paper_protocol(
-            n_train=args.operating_points,
-            n_test=args.operating_points,
-            seed=args.seed,
-            noise=args.noise,
-            model=MachineModel(name="psat-5.1", exciter=Exciter(), governor=Governor()),
-            generators=tuple(todo),
-        )
+        data = benchmark_protocol(args, todo)
         data_s = time.perf_counter() - t0
         _log(f"simulated the protocol once for all generators: {data_s:.1f} s")
     for i, gen in enumerate(todo):

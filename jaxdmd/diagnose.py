@@ -48,7 +48,7 @@ from jaxdmd.proposers.offline import (
     parse_equations,
     term_pool,
 )
-from jaxdmd.rollout import Block, RolloutResult, fault_window, metrics, rollout
+from jaxdmd.rollout import Block, RolloutResult, as_block, fault_window, metrics, rollout
 from jaxdmd.search import Equations, Problem, SearchConfig, SearchState
 from jaxdmd.skeleton import Skeleton, SkeletonError, compile_skeleton, extract
 
@@ -601,16 +601,6 @@ def _nmse(problem: Problem, model: UserModel, params: Sequence[float]) -> dict[s
     return {t: float(v) for t, v in zip(model.targets, err, strict=True)}
 
 
-def _block(model: UserModel, params: Sequence[float], key: str) -> Block:
-    sk = model.skeleton()
-    return Block(model.targets, sk.arguments, sk.fn, np.asarray(params), key=f"{key}:{sk.source}")
-
-
-def _eq_block(eq: Equations) -> Block:
-    sk = eq.skeleton()
-    return Block(eq.contract.targets, sk.arguments, sk.fn, np.asarray(eq.params), f"x:{sk.source}")
-
-
 def _held_out_metrics(
     block: Block, test: Sequence[Dataset]
 ) -> tuple[dict[str, Any], list[RolloutResult]]:
@@ -741,7 +731,7 @@ def diagnose(
     held_metrics: dict[str, dict[str, Any]] = {}
     for name, eq in (("given", given), ("refit", refit)):
         if eq is not None:
-            held_metrics[name], runs[name] = _held_out_metrics(_block(model, eq.params, name), held)
+            held_metrics[name], runs[name] = _held_out_metrics(as_block(eq), held)
     errors = locate_errors(runs["given" if given is not None else "refit"][0], held[0], states)
 
     # 2.-3. the cause
@@ -773,7 +763,7 @@ def diagnose(
         coefs = coefficients(extended)
         rounds = state.iteration
         joined = tuple(v.name for v in state.contract.library if v.name not in model.arguments)
-        held_metrics["extended"], runs["extended"] = _held_out_metrics(_eq_block(extended), held)
+        held_metrics["extended"], runs["extended"] = _held_out_metrics(as_block(extended), held)
         nmse["extended"] = dict(zip(extended.contract.targets, extended.losses, strict=True))
     return Diagnosis(
         model=model,

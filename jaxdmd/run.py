@@ -201,17 +201,23 @@ def benchmark_recordings(args: argparse.Namespace) -> tuple[list[Dataset], list[
     delta 60 rad), and noise of 1 % of each signal's range then buries the dynamics. The training
     derivatives are the default estimates from the noisy states (matched fitting applies).
     """
+    data = benchmark_protocol(args, (args.generator,))
+    return list(data.train[args.generator]), list(data.test[args.generator])
+
+
+def benchmark_protocol(args: argparse.Namespace, generators: Sequence[int]):
+    """The benchmark's simulation (see `benchmark_recordings`) for several generators at once:
+    ``args.operating_points`` training and test points, ``args.seed``, ``args.noise``."""
     from jaxdmd.grid import Exciter, Governor, MachineModel, paper_protocol
 
-    data = paper_protocol(
+    return paper_protocol(
         n_train=args.operating_points,
         n_test=args.operating_points,
         seed=args.seed,
         noise=args.noise,
         model=MachineModel(name="psat-5.1", exciter=Exciter(), governor=Governor()),
-        generators=(args.generator,),
+        generators=tuple(generators),
     )
-    return list(data.train[args.generator]), list(data.test[args.generator])
 
 
 # ----------------------------------------------------------------------------------------------
