@@ -207,6 +207,12 @@ def _variance(target: np.ndarray) -> np.ndarray:
 # One candidate: residuals, losses, Jacobian products
 
 
+def _on_device(x: Any, dtype: Any = None) -> Array:
+    """A host array on the device. ``jax.device_put``, not ``jnp.asarray``: in this JAX the
+    latter compiles a small XLA program per new shape (tens of ms each, on every cold start)."""
+    return jax.device_put(np.asarray(x, dtype=dtype))
+
+
 class Operator:
     """A linear operator applied to every prediction before it is compared with the targets.
 
@@ -216,8 +222,8 @@ class Operator:
     """
 
     def __init__(self, index: Any, weight: Any):
-        self.index = jnp.asarray(np.asarray(index, dtype=np.int64))
-        self.weight = jnp.asarray(np.asarray(weight, dtype=np.float64))
+        self.index = _on_device(index, np.int64)
+        self.weight = _on_device(weight, np.float64)
         if self.index.shape != self.weight.shape or self.index.ndim != 2:
             raise ValueError("operator index and weight must both be [N, w]")
 
@@ -893,8 +899,8 @@ def fit_batch(
         raise ValueError(f"the operator does not fit {n} samples")
 
     scale_np = np.sqrt(w / (n * _variance(targets_np)[:, None]))
-    data = {k: jnp.asarray(v) for k, v in data_np.items()}
-    tgt, scale = jnp.asarray(targets_np), jnp.asarray(scale_np)
+    data = {k: _on_device(v) for k, v in data_np.items()}
+    tgt, scale = _on_device(targets_np), _on_device(scale_np)
 
     results: list[FitResult | None] = [None] * len(skeletons)
     models: dict[int, _Model] = {}
@@ -935,7 +941,7 @@ def fit_batch(
         p0 = np.zeros((len(batch), config.restarts, pmax))
         for j, m in enumerate(batch):
             p0[j, :, : m.n_params] = _initial_params(m, key_data, config)
-        finish(indices, fn({a: data[a] for a in used}, tgt, scale, jnp.asarray(p0)))
+        finish(indices, fn({a: data[a] for a in used}, tgt, scale, _on_device(p0)))
 
     features: dict[int, np.ndarray] = {}
 
@@ -953,7 +959,7 @@ def fit_batch(
         n_regs = interp.bucket(max(q.n_regs for i in indices for q in parts_of[i]), 8)
         fn = _interpreter_build(n_regs, n_outputs, config, operator is not None)
         if operator is None:
-            op_index, op_weight = jnp.zeros((1, 1), jnp.int64), jnp.zeros((1, 1))
+            op_index, op_weight = _on_device(np.zeros((1, 1), np.int64)), _on_device(np.zeros((1, 1)))
         else:
             op_index, op_weight = operator.index, operator.weight
         chunks = [indices[s : s + chunk] for s in range(0, len(indices), chunk)]
@@ -975,9 +981,9 @@ def fit_batch(
             p0 = np.zeros((chunk, config.restarts, pmax))
             for j, i in enumerate(part):
                 p0[j, :, : models[i].n_params] = _initial_params(models[i], key_data, config)
-            code_j = {k: jnp.asarray(v) for k, v in code.items()}
-            args = (jnp.asarray(x), tgt, scale, op_index, op_weight, jnp.asarray(p0))
-            finish(part, fn(code_j, jnp.asarray(pidx), *args))
+            code_j = {k: _on_device(v) for k, v in code.items()}
+            args = (_on_device(x), tgt, scale, op_index, op_weight, _on_device(p0))
+            finish(part, fn(code_j, _on_device(pidx), *args))
 
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:

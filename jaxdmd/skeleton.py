@@ -1021,9 +1021,12 @@ def _build(
     namespace.update({f"_m_{name}": function for name, (function, _) in FUNCTIONS.items()})
     namespace["_m_logical_and"] = jnp.logical_and
     namespace["_m_float"] = _as_float
-    namespace.update({f"_m_{name}": jnp.asarray(v, dtype=dtype) for name, v in _CONSTANTS.items()})
+    # device_put, not jnp.asarray (which compiles a small program per shape in this JAX)
     namespace.update(
-        {f"_k{i}": jnp.asarray(v, dtype=dtype) for i, v in enumerate(rewriter.constants)}
+        {f"_m_{name}": jax.device_put(np.asarray(v, dtype)) for name, v in _CONSTANTS.items()}
+    )
+    namespace.update(
+        {f"_k{i}": jax.device_put(np.asarray(v, dtype)) for i, v in enumerate(rewriter.constants)}
     )
     exec(code, namespace)  # defines the function only: no defaults, decorators or annotations
     from jaxdmd import interp  # (circular import at module level)
