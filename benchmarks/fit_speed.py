@@ -242,12 +242,12 @@ def part_jax(
 ) -> dict:
     import jax
 
-    import jaxdmd  # noqa: F401  (float64)
-    from jaxdmd.fit import FitConfig, fit_batch
-
     # imports stay outside every part's timer (part c imports scipy.optimize before its timer);
     # JAX imports scipy.linalg lazily for its LAPACK kernels, 0.25 s on the first linalg call
     import scipy.linalg  # noqa: F401
+
+    import jaxdmd  # noqa: F401  (float64)
+    from jaxdmd.fit import FitConfig, fit_batch
 
     if cache_dir:
         jax.config.update("jax_compilation_cache_dir", cache_dir)

@@ -72,6 +72,15 @@ def matched_operator(datasets: Sequence[Dataset]) -> Operator:
     return Operator(index, weight)
 
 
+def _event_samples(t: np.ndarray, events: Sequence[float]) -> np.ndarray:
+    """Which samples fall on an event time (to a thousandth of the median step), [n] bool."""
+    tol = 1e-3 * float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    hit = np.zeros(t.shape[0], dtype=bool)
+    for e in events:
+        hit |= np.abs(t - e) <= tol
+    return hit
+
+
 def integral_operator(datasets: Sequence[Dataset], width: float) -> tuple[Operator, np.ndarray]:
     """The integral (weak) form of state equations over concatenated recordings.
 
@@ -99,11 +108,18 @@ def integral_operator(datasets: Sequence[Dataset], width: float) -> tuple[Operat
         inside = k <= last[:, None]
         k = np.where(inside, k, last[:, None])
         dt = np.diff(t)
-        # trapezoid: sample k gets (dt_{k-1} + dt_k) / 2 of the intervals inside the window
-        left = np.where(k > first[:, None], dt[np.maximum(k - 1, 0)], 0.0)
-        right = np.where(k < last[:, None], dt[np.minimum(k, n - 2)], 0.0)
+        # trapezoid: sample k gets (dt_{k-1} + dt_k) / 2 of the intervals inside the window;
+        # an interval that ends at an event (a fault applied or cleared: the sample there holds
+        # the values after the jump, the algebraic variables jump) is integrated by its left
+        # end alone: averaging across the jump would be wrong by half the jump
+        at_event = _event_samples(t, ds.events)  # [n]
+        ends_at_event = at_event[1:]  # interval j = (t_j, t_{j+1}]
+        share_left = np.where(ends_at_event, 1.0, 0.5)
+        share_right = np.where(ends_at_event, 0.0, 0.5)
+        left = np.where(k > first[:, None], (dt * share_right)[np.maximum(k - 1, 0)], 0.0)
+        right = np.where(k < last[:, None], (dt * share_left)[np.minimum(k, n - 2)], 0.0)
         rows_index.append(k + offset)
-        rows_weight.append(np.where(inside, 0.5 * (left + right), 0.0))
+        rows_weight.append(np.where(inside, left + right, 0.0))
         ends.append(np.stack([first, last], axis=1) + offset)
         offset += n
     width_max = max(i.shape[1] for i in rows_index)
@@ -148,6 +164,7 @@ def de_problem(
     groups: np.ndarray | None = None,
     integral: float | None = None,
     weighted: bool = False,
+    smooth: bool = False,
 ) -> tuple[Problem, Contract]:
     """The DE loop's problem: state derivatives from every recording, the catalog, the contract.
 
@@ -162,9 +179,14 @@ def de_problem(
     (seconds), the equations are fitted in their integral form (:func:`integral_operator`):
     targets are the states' increments over windows of that width, derivatives are not used.
     With ``weighted`` (same requirement as ``matched``), every sample is weighted by the
-    inverse of the noise the estimator passes there (:func:`noise_weights`).
+    inverse of the noise the estimator passes there (:func:`noise_weights`). With ``smooth``,
+    the states are replaced by their smoothed estimates (as in :func:`ae_problem`) before
+    anything else: in the integral form this cuts the noise of the increments and of the
+    regressors (errors in variables bias the coefficients towards zero).
     """
     datasets = list(datasets)
+    if smooth:
+        datasets = [ds.with_estimated_derivatives(smooth=True) for ds in datasets]
     first = datasets[0]
     if not first.state_names:
         raise ValueError("the data have no state channels (role 'state')")

@@ -959,7 +959,8 @@ def fit_batch(
         n_regs = interp.bucket(max(q.n_regs for i in indices for q in parts_of[i]), 8)
         fn = _interpreter_build(n_regs, n_outputs, config, operator is not None)
         if operator is None:
-            op_index, op_weight = _on_device(np.zeros((1, 1), np.int64)), _on_device(np.zeros((1, 1)))
+            op_index = _on_device(np.zeros((1, 1), np.int64))
+            op_weight = _on_device(np.zeros((1, 1)))
         else:
             op_index, op_weight = operator.index, operator.weight
         chunks = [indices[s : s + chunk] for s in range(0, len(indices), chunk)]

@@ -296,3 +296,29 @@ def test_integral_operator_integrates_within_each_recording():
     assert np.all(ends[:, 1] > ends[:, 0])
     with pytest.raises(ValueError, match="positive"):
         integral_operator(rec, width=0.0)
+
+
+def test_integral_operator_does_not_average_across_an_event():
+    """An algebraic variable jumps at a fault; the sample at the event holds the value after it.
+
+    A trapezoid across the jump would be off by half the jump times the step; the operator
+    integrates the interval that ends at the event by its left end and is exact here.
+    """
+    from jaxdmd.data import Dataset
+    from jaxdmd.discover import integral_operator
+
+    t = np.round(np.linspace(0.0, 2.0, 201), 10)
+    y = np.where(t < 1.0, 1.0, 3.0)  # jumps at the event t = 1.0, which is a sample
+    state = {"x": t}
+    channels = {"x": t, "y": y}
+    roles = {"x": "state", "y": "algebraic"}
+    with_event = Dataset.create(t, channels, roles, derivatives=state, events=(1.0,))
+    op, ends = integral_operator([with_event], width=0.3)
+    integrals = np.asarray(op(jnp.asarray(y)))
+    row = int(np.flatnonzero(np.isclose(t, 0.9))[0])
+    assert t[ends[row, 0]] == pytest.approx(0.9) and t[ends[row, 1]] == pytest.approx(1.2)
+    assert integrals[row] == pytest.approx(0.1 * 1.0 + 0.2 * 3.0, abs=1e-12)
+    # without the event the same samples are a continuous signal: plain trapezoid
+    plain = Dataset.create(t, channels, roles, derivatives=state)
+    op_plain, _ = integral_operator([plain], width=0.3)
+    assert float(op_plain(jnp.asarray(y))[row]) == pytest.approx(0.7 + 0.01, abs=1e-12)
