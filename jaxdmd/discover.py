@@ -14,6 +14,7 @@ search (:mod:`jaxdmd.search`):
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ import numpy as np
 
 from jaxdmd import search
 from jaxdmd.data import Dataset, matched_filter, stack_samples
-from jaxdmd.fit import Operator
+from jaxdmd.fit import FitConfig, Operator
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
@@ -273,6 +274,42 @@ def ae_problem(
         system=system,
     )
     return problem, contract
+
+
+def refit_integral(
+    equations: Equations,
+    datasets: Sequence[Dataset],
+    width: float,
+    key: jax.Array,
+    config: FitConfig | None = None,
+) -> tuple[Equations, tuple[float, ...]]:
+    """The DE loop's final equations with their parameters refitted in the integral form.
+
+    The structure comes from the search; the parameters are fitted again to the increments of
+    the smoothed states over ``width``-second windows (:func:`de_problem` with ``integral`` and
+    ``smooth``), which needs no derivative estimate: on the benchmark the true structure's
+    largest coefficient error falls from 2.3 % (weighted derivatives) to 1.5 %
+    (``benchmarks/oracle.py``). Returns the refitted equations (their ``losses`` and ``score``
+    remain the search's, in its own form) and the integral-form NMSE of each equation. If the
+    refit fails the equations are returned unchanged, with NaN for those NMSEs.
+    """
+    from jaxdmd.fit import fit_batch
+
+    contract = equations.contract
+    problem, _ = de_problem(datasets, states=contract.targets, integral=width, smooth=True)
+    skeleton = equations.skeleton()
+    (result,) = fit_batch(
+        [skeleton],
+        {n: problem.variables[n] for n in skeleton.arguments},
+        problem.targets,
+        key=key,
+        config=config or FitConfig(),
+        operator=problem.operator,
+    )
+    if result.error is not None:
+        return equations, tuple(float("nan") for _ in contract.targets)
+    refit = dataclasses.replace(equations, params=tuple(float(x) for x in result.params))
+    return refit, tuple(float(x) for x in result.losses)
 
 
 def run_loop(

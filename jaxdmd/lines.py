@@ -148,6 +148,44 @@ def assemble(
     return "\n".join([header, *body, f"    return {', '.join(outputs)}"]) + "\n"
 
 
+def summands(node: ast.expr) -> list[ast.expr]:
+    """The summands of a sum (``a - b`` gives ``a`` and ``-b``); a non-sum is one summand."""
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add | ast.Sub):
+        right = node.right
+        if isinstance(node.op, ast.Sub):
+            right = ast.UnaryOp(op=ast.USub(), operand=right)
+        return [*summands(node.left), *summands(right)]
+    return [node]
+
+
+def without_each_summand(line: Line) -> list[Line]:
+    """``line`` with one summand left out, for each summand that carries a parameter.
+
+    The parameters of what remains are renumbered from ``p[0]``. A line of one summand, or one
+    whose parameters are shared between summands (dropping one would change another), gives
+    nothing.
+    """
+    parts = summands(line.expr)
+    if len(parts) < 2:
+        return []
+    params = [{_param_index(n) for n in ast.walk(s)} - {None} for s in parts]
+    if any(a & b for i, a in enumerate(params) for b in params[i + 1 :]):
+        return []
+    out = []
+    for k in range(len(parts)):
+        if not params[k]:
+            continue
+        rest = [copy.deepcopy(s) for i, s in enumerate(parts) if i != k]
+        expr = rest[0]
+        for s in rest[1:]:
+            expr = ast.BinOp(left=expr, op=ast.Add(), right=s)
+        renumber = _Renumber()
+        expr = ast.fix_missing_locations(renumber.visit(expr))
+        if renumber.mapping:
+            out.append(Line(expr, len(renumber.mapping)))
+    return out
+
+
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
     """The expression with fitted parameter values in place of ``p[i]`` (for readable output)."""
 

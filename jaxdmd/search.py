@@ -503,7 +503,11 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
 
 
 def final_equations(
-    state: SearchState, tolerance: float = 0.05, floor: float = 1e-4, candidates: int = 15
+    state: SearchState,
+    tolerance: float = 0.05,
+    floor: float = 1e-4,
+    candidates: int = 15,
+    prune: bool = True,
 ) -> Equations:
     """The result: for each equation, the simplest line that generalises as well as the best.
 
@@ -511,9 +515,14 @@ def final_equations(
     j with the lowest training NMSE are scored by leave-one-recording-out cross-validation
     (:func:`cross_validated_losses`); terms that only fit the noise of one recording do not carry
     over to another. Among the lines within ``tolerance`` (relative, plus ``floor``) of the best
-    score, the one with the fewest parameters (then the fewest nodes, then the lowest score) is
-    kept. With one recording the training NMSE is the score. The kept lines are assembled into
-    one skeleton and refitted on all the data.
+    score, the one with the fewest parameters (then the fewest variables that are not states,
+    since each must be closed by an algebraic equation, then the fewest nodes, then the lowest
+    score) is kept. With ``prune`` (and cross-validation), summands are then taken out of the
+    kept line one at a time (backward elimination: each round the summand whose removal leaves
+    the lowest CV score goes, while that score stays within the same bound), because the archive
+    holds the lines the search wrote, not every subset of them. With one recording the training
+    NMSE is the score and nothing is pruned. The kept lines are assembled into one skeleton and
+    refitted on all the data.
     """
     entries = _distinct(e for isl in state.archive.islands for e in isl.entries)
     n_out = len(state.contract.targets)
@@ -535,12 +544,29 @@ def final_equations(
             else np.array([loss for loss, _ in options])
         )
         bound = float(np.min(scores)) * (1 + tolerance) + floor
+        states = {v.name for v in state.contract.states}
         ranked = sorted(
-            (line.n_params, sum(1 for _ in ast.walk(line.expr)), score, k)
+            (
+                line.n_params,
+                len(line.variables() - states),  # each non-state needs closing (the AE loop)
+                sum(1 for _ in ast.walk(line.expr)),
+                score,
+                k,
+            )
             for k, ((_, line), score) in enumerate(zip(options, scores, strict=True))
             if score <= bound
         )
-        chosen.append(options[ranked[0][3]][1])
+        line = options[ranked[0][-1]][1]
+        while prune and use_cv:
+            variants = ln.without_each_summand(line)
+            if not variants:
+                break
+            cv = cross_validated_losses(state, j, variants)
+            best = int(np.argmin(cv))
+            if not cv[best] <= bound:
+                break
+            line = variants[best]
+        chosen.append(line)
     source = ln.assemble(
         state.contract.function_name,
         state.contract.arguments,

@@ -267,3 +267,72 @@ def test_noise_weights_follow_the_estimator():
     assert w[:1001][after].max() < 0.3 * np.median(w)  # short windows after an event: noisy
     problem, _ = de_problem([ds], matched=True, weighted=True)
     assert problem.weights is not None and problem.weights.shape == (1001,)
+
+
+def test_final_equations_prune_terms_that_do_not_generalise():
+    """The only candidate carries terms the data do not need; backward elimination drops them."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    x, y, u = rng.normal(size=(3, n))
+    problem = search.Problem(
+        variables={k: jnp.asarray(v) for k, v in dict(x=x, y=y, u=u).items()},
+        targets=jnp.asarray(
+            np.stack([-0.5 * x + 2.0 * u, -1.0 * y]) + 0.05 * rng.normal(size=(2, n))
+        ),
+        target_names=("x", "y"),
+        catalog=(),
+        groups=jnp.asarray(np.arange(n) * 4 // n),
+    )
+    contract = Contract(
+        loop="DE",
+        targets=("x", "y"),
+        states=(Variable("x", "state"), Variable("y", "state")),
+        library=(Variable("u", "input"),),
+    )
+    state = search.init(problem, contract, jax.random.key(0), CONFIG)
+    text = (
+        "def equation(x, y, u, p):\n"
+        "    return p[0] * x + p[1] * u + p[2] * y + p[3] * x * y + p[4], p[5] * y + p[6] * x * u\n"
+    )
+    state, report = search.step(state, [Sample(text, 0)])
+    assert report.n_valid == 1
+    kept = search.final_equations(state, prune=False).readable()
+    assert len(kept["dx/dt"].split(" + ")) >= 3  # without pruning the spurious terms stay
+    pruned = search.final_equations(state)
+    text = pruned.readable()
+    dx, dy = text["dx/dt"].split(" + "), text["dy/dt"].split(" + ")
+    assert len(dx) == 2
+    assert any(t.endswith("* x") for t in dx) and any(t.endswith("* u") for t in dx)
+    assert len(dy) == 1 and dy[0].endswith("* y")
+    assert len(pruned.params) == 3
+
+
+def test_without_each_summand():
+    from jaxdmd import lines as ln
+
+    (line,), _ = ln.split_lines("def f(x, y, p):\n    return p[0] * x - p[1] * y + 3.0\n")
+    variants = {v.text: v.n_params for v in ln.without_each_summand(line)}
+    assert variants == {"-(p[0] * y) + 3.0": 1, "p[0] * x + 3.0": 1}
+    (shared,), _ = ln.split_lines("def f(x, y, p):\n    return p[0] * x + p[0] * y\n")
+    assert ln.without_each_summand(shared) == []
+
+
+def test_offline_subset_edit_finds_a_sparse_linear_equation():
+    """Among 8 candidate variables, the exhaustive subset edit returns the two the data use."""
+    rng = np.random.default_rng(5)
+    n = 1200
+    names = [f"a{i}" for i in range(6)]
+    data = {k: rng.normal(size=n) for k in ["x", "y", *names]}
+    target = 1.5 * data["a3"] - 0.7 * data["y"] + 0.05 * rng.normal(size=n)
+    proposer = OfflineProposer(
+        data,
+        np.stack([target, data["x"]]),
+        groups=np.arange(n) * 3 // n,
+    )
+    variables = (
+        Variable("x", "state"),
+        Variable("y", "state"),
+        *(Variable(k, "algebraic") for k in names),
+    )
+    chosen = {tuple(sorted(proposer._subset(rng, 0, variables))) for _ in range(5)}
+    assert chosen == {("a3", "y")}

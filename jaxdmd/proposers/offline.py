@@ -130,15 +130,6 @@ def _has_param(node: ast.AST) -> bool:
     return any(_is_param(n) for n in ast.walk(node))
 
 
-def _summands(node: ast.expr) -> list[ast.expr]:
-    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add | ast.Sub):
-        right = node.right
-        if isinstance(node.op, ast.Sub):
-            right = ast.UnaryOp(op=ast.USub(), operand=right)
-        return [*_summands(node.left), *_summands(right)]
-    return [node]
-
-
 def _factors(node: ast.expr) -> list[ast.expr]:
     if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Mult):
         return [*_factors(node.left), *_factors(node.right)]
@@ -208,7 +199,7 @@ def parse_equations(source: str) -> list[Equation]:
     lines, _ = ln.split_lines(source)
     out = []
     for line in lines:
-        terms = [_strip(s) for s in _summands(line.expr)]
+        terms = [_strip(s) for s in ln.summands(line.expr)]
         if any(t is None for t in terms):
             out.append(Equation(opaque=line))
         else:
@@ -264,8 +255,11 @@ def term_pool(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> 
 # ----------------------------------------------------------------------------------------------
 # the proposer
 
-_OPERATORS = ("add", "grow", "remove", "swap", "simplify")
-_OPERATOR_WEIGHTS = (0.35, 0.3, 0.1, 0.15, 0.1)
+# edits of one equation per step, and how often each is drawn: add a ranked term, grow greedily,
+# remove, swap, simplify (backward elimination), and subset: the best small subset of the
+# level-one blocks, found exhaustively (a sparse linear model, the first thing an engineer fits)
+_OPERATORS = ("add", "grow", "remove", "swap", "simplify", "subset")
+_OPERATOR_WEIGHTS = (0.3, 0.25, 0.1, 0.15, 0.1, 0.1)
 
 
 @dataclass(frozen=True)
@@ -283,6 +277,7 @@ class OfflineConfig:
     max_terms: int = 8  # terms per equation
     max_requests: int = 2  # variables requested per answer (each the best for its equation)
     min_request_gain: float = 1e-3  # NMSE drop a requested variable's best term must bring
+    subset_size: int = 3  # the "subset" edit searches every subset of up to this many blocks
 
 
 class OfflineProposer:
@@ -476,6 +471,48 @@ class OfflineProposer:
             terms.pop(i)
         return terms
 
+    def _subset(self, rng, j: int, variables: Sequence[Variable]) -> list[str]:
+        """A best subset of at most ``subset_size`` level-one blocks (the constant, angles,
+        single variables or their deviations) for equation j, by held-out error over every
+        subset: the smallest size whose best is within ``min_relative_gain`` of the best of any
+        size, and of that size one subset drawn among those within that bar (near-equivalent
+        variables, such as a state and a measured channel tied to it, are then all offered)."""
+        blocks, angles = building_blocks(variables, self.data)
+        names = [t for t in dict.fromkeys(["1", *angles, *blocks]) if self.column(t) is not None]
+        if not names:
+            return ["1"]
+        x, y = self.design(names), self.targets[j]
+        folds = (
+            [np.ones(len(y), bool)]
+            if self.groups is None
+            else [self.groups == g for g in np.unique(self.groups)]
+        )
+        gram = np.stack([x[f].T @ x[f] for f in folds])  # [F, B, B]
+        cross = np.stack([x[f].T @ y[f] for f in folds])  # [F, B]
+        yy = np.array([y[f] @ y[f] for f in folds])
+        held_out = self.groups is not None
+        best: list[tuple[float, tuple[int, ...]]] = []
+        for k in range(1, min(self.config.subset_size, len(names)) + 1):
+            subsets = np.array(list(itertools.combinations(range(len(names)), k)))  # [S, k]
+            g_sub = gram[:, subsets[:, :, None], subsets[:, None, :]]  # [F, S, k, k]
+            c_sub = cross[:, subsets]  # [F, S, k]
+            g_fit = g_sub.sum(0) - g_sub if held_out else g_sub
+            c_fit = c_sub.sum(0) - c_sub if held_out else c_sub
+            ridge = 1e-10 * np.trace(g_fit, axis1=-2, axis2=-1)[..., None, None] + 1e-300
+            coef = np.linalg.solve(g_fit + ridge * np.eye(k), c_fit[..., None])[..., 0]
+            sse = (
+                yy[:, None]
+                - 2 * np.einsum("fsk,fsk->fs", coef, c_sub)
+                + np.einsum("fsk,fskl,fsl->fs", coef, g_sub, coef)
+            ).sum(0)
+            best.append((sse, subsets))
+        bar = min(float(sse.min()) for sse, _ in best) * (1 + self.config.min_relative_gain)
+        for sse, subsets in best:  # by size: the first whose best is within the bar
+            near = np.flatnonzero(sse <= bar)
+            if near.size:
+                return [names[i] for i in subsets[int(rng.choice(near))]]
+        return ["1"]
+
     # -- proposing ---------------------------------------------------------------------------
 
     def propose(self, requests: Sequence[PromptRequest]) -> list[Sample]:
@@ -515,10 +552,10 @@ class OfflineProposer:
             if eq.opaque is not None:
                 eq = Equation(terms=("1",))  # an opaque line is rebuilt from terms
             terms = list(eq.terms)
-            op = rng.choice(
-                ["add", "grow", "remove", "swap", "simplify"], p=[0.35, 0.3, 0.1, 0.15, 0.1]
-            )
-            if op == "add":
+            op = rng.choice(_OPERATORS, p=_OPERATOR_WEIGHTS)
+            if op == "subset":
+                terms = self._subset(rng, j, variables)
+            elif op == "add":
                 terms = self._add(rng, j, terms, pool)
             elif op == "grow":
                 for _ in range(int(rng.integers(1, self.config.grow_terms + 1))):
