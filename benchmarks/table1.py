@@ -463,19 +463,7 @@ def discover(
     gen: int, train: Sequence[Any], test: Sequence[Any], args: argparse.Namespace, out: Path
 ) -> tuple[Any, Any, dict[str, Any]]:
     """``python -m jaxdmd.run``'s discovery on given recordings (checkpointed in ``out``)."""
-    import jax
-
-    from jaxdmd import search
-    from jaxdmd.discover import Discovery, ae_problem, de_problem, resume_or_init, run_loop
-    from jaxdmd.run import (
-        Progress,
-        _config,
-        _OfflineFactory,
-        ae_test_r2,
-        build_parser,
-        loop_summary,
-        write_outputs,
-    )
+    from jaxdmd.run import Progress, build_parser, discover_recordings, write_outputs
 
     run_args = build_parser().parse_args(
         [
@@ -488,47 +476,15 @@ def discover(
         ]
     )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
-    proposer = _OfflineFactory()
-    config = _config(run_args)
     progress = Progress(quiet=args.quiet_rounds)
-    de_key, ae_key = jax.random.split(jax.random.key(args.seed))
-
-    def loop(name: str, problem: Any, contract: Any, key: Any) -> tuple[Any, Any, float]:
-        start = time.perf_counter()
-        checkpoint = out / f"{name.lower()}_state.json"
-        state = resume_or_init(problem, contract, key, config, checkpoint)
-        progress.loop_started(f"gen {gen} {name}", state)
-        state = run_loop(
-            state,
-            proposer(problem),
-            on_round=lambda s, r: progress.round(f"gen {gen} {name}", s, r),
-            checkpoint=checkpoint,
-        )
-        # as python -m jaxdmd.run: no absolute floor for the integral form's small NMSEs
-        floor = 0.0 if name == "DE" and args.integral else 1e-4
-        return state, search.final_equations(state, floor=floor), time.perf_counter() - start
-
-    integral = args.integral
-    de_state, de, de_s = loop(
-        "DE", *de_problem(train, matched=integral is None, integral=integral), de_key
+    discovery, summary = discover_recordings(
+        run_args, train, test, out, progress, label=f"gen {gen} "
     )
-    summary: dict[str, Any] = {
-        "source": {"benchmark": "ieee39-psat-5.1", "generator": gen},
-        "proposer": "offline",
-        "settings": {k: getattr(run_args, k) for k in ("rounds", "seed", "noise", "prompts")},
-        "de": loop_summary(de_state, de, de_s),
-    }
-    ae = ae_state = None
-    ae_s = 0.0
-    if any(v.role == "algebraic" for v in de.contract.library):
-        ae_state, ae, ae_s = loop("AE", *ae_problem(train, de.contract), ae_key)
-        summary["ae"] = loop_summary(ae_state, ae, ae_s)
-        summary["ae"]["test_r2"] = ae_test_r2(ae, list(test))
-    else:  # the state equations are closed without algebraic variables: no AE loop to run
-        summary["ae"] = {"rounds": 0, "stop_reason": "the DE loop used no algebraic variable"}
-    summary["wall_time_s"] = de_s + ae_s
-    write_outputs(out, Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state), summary)
-    return de, ae, summary
+    summary = {"source": {"benchmark": "ieee39-psat-5.1", "generator": gen}, **summary}
+    if discovery.ae is None:  # the state equations are closed without algebraic variables
+        summary["ae"] = {"rounds": 0, "stop_reason": summary.get("ae_skipped", "")}
+    write_outputs(out, discovery, summary)
+    return discovery.de, discovery.ae, summary
 
 
 def run_generator(

@@ -425,6 +425,97 @@ _RUN_KEYS = (
 )
 
 
+def discover_recordings(
+    args: argparse.Namespace,
+    train: Sequence[Dataset],
+    test: Sequence[Dataset],
+    out: Path,
+    progress: Progress,
+    label: str = "",
+) -> tuple[Discovery, dict[str, object]]:
+    """The DE loop, the integral refit, then the AE loop on given recordings, as the command
+    line runs them (``args`` from :func:`build_parser`); the loops' states are checkpointed in
+    ``out`` (a finished loop found there is resumed, not rerun). Returns the discovery and the
+    summary without ``source`` and the data's wall time (the caller's); ``wall_time_s`` is the
+    two loops' time. Shared by ``python -m jaxdmd.run`` and ``benchmarks/table1.py``."""
+    proposer = _proposer(args)
+    config = _config(args)
+    key = jax.random.key(args.seed)
+    de_key, ae_key = jax.random.split(key)
+    estimated = not (getattr(args, "data", None) and getattr(args, "given_derivatives", False))
+    integral = getattr(args, "integral", None)
+    matched = estimated and integral is None
+    weighted = matched and getattr(args, "weighted", False)
+
+    def loop(
+        name: str, problem: search.Problem, contract, key
+    ) -> tuple[SearchState, Equations, float]:
+        start = time.perf_counter()
+        checkpoint = out / f"{name.lower()}_state.json"
+        cfg = config
+        if getattr(args, "gamma", None) is not None:
+            cfg = dataclasses.replace(config, gamma=args.gamma)
+        elif name == "DE" and (integral or weighted):
+            # the paper's gamma is in plain derivative NMSE; the true structure's weighted and
+            # integral NMSEs lie below it (benchmarks/oracle.py: mean 0.0058 and 0.0019 against
+            # 0.013), and the loop would stop before extension brings in what it lacks
+            cfg = dataclasses.replace(config, gamma=config.gamma / 10)
+        state = resume_or_init(problem, contract, key, cfg, checkpoint)
+        progress.loop_started(f"{label}{name}", state)
+        state = run_loop(
+            state,
+            proposer(problem),
+            on_round=lambda s, r: progress.round(f"{label}{name}", s, r),
+            checkpoint=checkpoint,
+        )
+        # NMSEs of the integral form lie far below the derivatives': no absolute floor there
+        floor = 0.0 if name == "DE" and integral else 1e-4
+        return state, search.final_equations(state, floor=floor), time.perf_counter() - start
+
+    de_state, de, de_seconds = loop(
+        "DE",
+        *de_problem(
+            train, matched=matched, weighted=weighted, integral=integral, smooth=bool(integral)
+        ),
+        de_key,
+    )
+    refit = None
+    if getattr(args, "refit_integral", 0.0):
+        de, refit_nmse = refit_integral(
+            de, train, args.refit_integral, jax.random.fold_in(de_key, 9)
+        )
+        refit = {"form": "integral", "window_s": args.refit_integral, "nmse": refit_nmse}
+    ae = ae_state = None
+    ae_seconds = 0.0
+    ae_skipped = None
+    if getattr(args, "skip_ae", False):
+        ae_skipped = "--skip-ae"
+    elif not any(v.role == "algebraic" for v in de.contract.library):
+        ae_skipped = "the DE loop used no algebraic variable: there is nothing to close"
+        progress.console.print(f"AE loop skipped: {ae_skipped}")
+    else:
+        ae_state, ae, ae_seconds = loop(
+            "AE", *ae_problem(train, de.contract, smooth=estimated), ae_key
+        )
+    summary: dict[str, object] = {
+        "proposer": getattr(proposer, "name", "offline"),
+        "settings": {k: getattr(args, k) for k in _RUN_KEYS if hasattr(args, k)},
+        "de": loop_summary(de_state, de, de_seconds, refit),
+    }
+    if ae_skipped is not None:
+        summary["ae_skipped"] = ae_skipped
+    if ae is not None and ae_state is not None:
+        summary["ae"] = loop_summary(ae_state, ae, ae_seconds)
+        if test:
+            summary["ae"]["test_r2"] = ae_test_r2(ae, list(test))  # type: ignore[index]
+    stats = getattr(proposer, "stats", None)
+    if stats is not None:
+        summary["llm"] = stats()
+    summary["wall_time_s"] = de_seconds + ae_seconds
+    discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
+    return discovery, summary
+
+
 def discover(args: argparse.Namespace) -> int:
     if args.resume:
         out = Path(args.resume)
@@ -452,91 +543,15 @@ def discover(args: argparse.Namespace) -> int:
         source = {"benchmark": "ieee39-psat-5.1", "generator": args.generator}
     data_seconds = time.perf_counter() - t0
 
-    proposer = _proposer(args)
-    config = _config(args)
-    key = jax.random.key(args.seed)
-    de_key, ae_key = jax.random.split(key)
-
-    def loop(
-        name: str, problem: search.Problem, contract, key
-    ) -> tuple[SearchState, Equations, float]:
-        start = time.perf_counter()
-        checkpoint = out / f"{name.lower()}_state.json"
-        cfg = config
-        if args.gamma is not None:
-            cfg = dataclasses.replace(config, gamma=args.gamma)
-        elif name == "DE" and (integral or weighted):
-            # the paper's gamma is in plain derivative NMSE; the true structure's weighted and
-            # integral NMSEs lie below it (benchmarks/oracle.py: mean 0.0058 and 0.0019 against
-            # 0.013), and the loop would stop before extension brings in what it lacks
-            cfg = dataclasses.replace(config, gamma=config.gamma / 10)
-        state = resume_or_init(problem, contract, key, cfg, checkpoint)
-        progress.loop_started(name, state)
-        state = run_loop(
-            state,
-            proposer(problem),
-            on_round=lambda s, r: progress.round(name, s, r),
-            checkpoint=checkpoint,
-        )
-        # NMSEs of the integral form lie far below the derivatives': no absolute floor there
-        floor = 0.0 if name == "DE" and integral else 1e-4
-        return state, search.final_equations(state, floor=floor), time.perf_counter() - start
-
-    integral = getattr(args, "integral", None)
-    matched = not (args.data and args.given_derivatives) and integral is None
-    weighted = matched and args.weighted
-    de_state, de, de_seconds = loop(
-        "DE",
-        *de_problem(
-            train, matched=matched, weighted=weighted, integral=integral, smooth=bool(integral)
-        ),
-        de_key,
-    )
-    refit = None
-    if getattr(args, "refit_integral", 0.0):
-        de, refit_nmse = refit_integral(
-            de, train, args.refit_integral, jax.random.fold_in(de_key, 9)
-        )
-        refit = {"form": "integral", "window_s": args.refit_integral, "nmse": refit_nmse}
-    ae = ae_state = None
-    ae_seconds = 0.0
-    estimated = not (args.data and args.given_derivatives)
-    closes = any(v.role == "algebraic" for v in de.contract.library)
-    ae_skipped = None
-    if args.skip_ae:
-        ae_skipped = "--skip-ae"
-    elif not closes:  # keep the DE result: it is written below, the AE loop has nothing to do
-        ae_skipped = "the DE loop used no algebraic variable: there is nothing to close"
-        progress.console.print(f"AE loop skipped: {ae_skipped}")
-    else:
-        ae_state, ae, ae_seconds = loop(
-            "AE", *ae_problem(train, de.contract, smooth=estimated), ae_key
-        )
-
-    discovery = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state)
-    summary: dict[str, object] = {
-        "source": source,
-        "proposer": getattr(proposer, "name", "offline"),
-        "settings": {k: getattr(args, k) for k in _RUN_KEYS},
-        "de": loop_summary(de_state, de, de_seconds, refit),
-        "data_wall_time_s": data_seconds,
-    }
-    if ae_skipped is not None:
-        summary["ae_skipped"] = ae_skipped
-    if ae is not None and ae_state is not None:
-        summary["ae"] = loop_summary(ae_state, ae, ae_seconds)
-        if test:
-            summary["ae"]["test_r2"] = ae_test_r2(ae, test)  # type: ignore[index]
-    stats = getattr(proposer, "stats", None)
-    if stats is not None:
-        summary["llm"] = stats()
+    discovery, summary = discover_recordings(args, train, test, out, progress)
+    summary = {"source": source, **summary, "data_wall_time_s": data_seconds}
     summary["wall_time_s"] = time.perf_counter() - t0
     write_outputs(out, discovery, summary)
     progress.console.print(f"\n[bold]Discovered model[/bold] (written to {out}/):")
-    for k, v in de.readable().items():
+    for k, v in discovery.de.readable().items():
         progress.console.print(f"  {k} = {v}")
-    if ae is not None:
-        for k, v in ae.readable().items():
+    if discovery.ae is not None:
+        for k, v in discovery.ae.readable().items():
             progress.console.print(f"  {k} = {v}")
     return 0
 
