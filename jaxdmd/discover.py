@@ -312,6 +312,115 @@ def refit_integral(
     return refit, tuple(float(x) for x in result.losses)
 
 
+def _smoother_gains(ds: Dataset, block: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """For the default smoother S of ``ds`` (``differentiate``): diag(S) and sum_k S_ik^2, [n].
+
+    Built column block by column block (S is linear in the samples), so memory stays n x block.
+    """
+    from jaxdmd.data import differentiate
+
+    n = ds.n_samples
+    diag, square = np.zeros(n), np.zeros(n)
+    for start in range(0, n, block):
+        cols = np.arange(start, min(n, start + block))
+        unit = np.zeros((n, cols.size))
+        unit[cols, np.arange(cols.size)] = 1.0
+        s_cols, _ = differentiate(ds.t, unit, events=ds.events)  # S[:, cols]
+        diag[cols] = s_cols[cols, np.arange(cols.size)]
+        square += np.sum(s_cols**2, axis=1)
+    return diag, square
+
+
+def noise_variance(
+    ds: Dataset, names: Sequence[str], gains: tuple[np.ndarray, np.ndarray] | None = None
+) -> dict[str, float]:
+    """The white-noise variance of each channel, from the residual of the default smoother.
+
+    With x = s + e, E|x - Sx|^2 = sigma^2 sum_i (1 - 2 S_ii + sum_k S_ik^2) for a signal the
+    smoother passes. What it does not pass (a wrapped angle, a fast transient) counts as noise,
+    so the estimate suits smooth channels such as the states. ``gains``: the smoother's
+    ``(diag, sum of squares)`` if already computed (:func:`_smoother_gains`).
+    """
+    from jaxdmd.data import differentiate
+
+    diag, square = gains if gains is not None else _smoother_gains(ds)
+    x = np.stack([np.asarray(ds[n], dtype=float) for n in names], axis=1)
+    smooth, _ = differentiate(ds.t, x, events=ds.events)
+    variance = np.sum((x - smooth) ** 2, axis=0) / np.sum(1.0 - 2.0 * diag + square)
+    return {n: float(v) for n, v in zip(names, variance, strict=True)}
+
+
+def refit_bias_compensated(
+    equations: Equations, datasets: Sequence[Dataset], noisy: Sequence[str]
+) -> tuple[Equations, dict[str, str]]:
+    """The AE loop's equations refitted by bias-compensated least squares.
+
+    Least squares on noisy regressors is biased towards zero and mixes the coefficients
+    (errors in variables): with features G of the regressors, E[G'G] = G0'G0 + C, where C is
+    the covariance of the features' noise. The channels in ``noisy`` (the states, which the AE
+    loop fits on as smoothed estimates) get their noise variance estimated from the data
+    (:func:`noise_variance`) and scaled by the smoother's share of it; it is propagated to the
+    features through their Jacobian in those channels (first order), and each equation that is
+    affine in its parameters is refitted as p = (G'G - C)^-1 G'y on the smoothed states. The
+    other channels are taken as measured without noise. An equation that is not affine in p,
+    or whose corrected matrix is not positive definite, keeps its parameters. Returns the
+    equations and, per target, what was done.
+    """
+    from jaxdmd import lines as ln
+
+    lines, mappings = ln.split_lines(equations.source)
+    params = np.array(equations.params, dtype=float)
+    contract = equations.contract
+    gains = [_smoother_gains(ds) for ds in datasets]
+    noisy = tuple(noisy)
+    variances = [noise_variance(ds, noisy, g) for ds, g in zip(datasets, gains, strict=True)]
+    prepared = [ds.with_estimated_derivatives(smooth=True) for ds in datasets]
+    report: dict[str, str] = {}
+    for target, line, mapping in zip(contract.targets, lines, mappings, strict=True):
+        skeleton = search._line_skeleton(contract, line)
+        names = tuple(skeleton.arguments)
+        n_p = max(1, line.n_params)
+
+        def value(args: jax.Array, p: jax.Array, skeleton=skeleton) -> jax.Array:
+            out = skeleton.fn(*args, p)
+            return jnp.asarray(out[0] if isinstance(out, tuple | list) else out, jnp.float64)
+
+        features = jax.jit(jax.vmap(jax.jacfwd(value, argnums=1), in_axes=(0, None)))  # [n, P]
+        sensitivity = jax.jit(jax.vmap(jax.jacfwd(jax.jacfwd(value, argnums=1)), in_axes=(0, None)))
+        offsets = jax.jit(jax.vmap(value, in_axes=(0, None)))
+        gram = correction = 0.0
+        cross = 0.0
+        affine = True
+        for ds, raw, (_, gain), variance in zip(prepared, datasets, gains, variances, strict=True):
+            args = np.stack([np.asarray(ds[a], dtype=float) for a in names], axis=1)
+            zero, one = jnp.zeros(n_p), jnp.ones(n_p)
+            g = np.asarray(features(args, zero))
+            if not np.allclose(g, np.asarray(features(args, one)), rtol=1e-9, atol=1e-12):
+                affine = False
+                break
+            offset = np.asarray(offsets(args, zero))
+            jac = np.asarray(sensitivity(args, zero))  # [n, P, A]: d feature / d channel
+            weight = np.stack(
+                [variance.get(a, 0.0) * gain for a in names], axis=1
+            )  # [n, A]: the noise variance of each (smoothed) regressor sample
+            y = np.asarray(raw[target], dtype=float) - offset
+            gram = gram + g.T @ g
+            cross = cross + g.T @ y
+            correction = correction + np.einsum("npa,nqa,na->pq", jac, jac, weight)
+        if not affine:
+            report[target] = "kept: not affine in its parameters"
+            continue
+        corrected = gram - correction
+        eig = np.linalg.eigvalsh(corrected)
+        if not np.all(np.isfinite(eig)) or eig.min() <= 1e-12 * max(eig.max(), 1e-300):
+            report[target] = "kept: the corrected normal matrix is not positive definite"
+            continue
+        params[list(mapping)] = np.linalg.solve(corrected, cross)[: len(mapping)]
+        report[target] = "refitted"
+    refit = dataclasses.replace(equations, params=tuple(float(x) for x in params))
+    return refit, report
+
+
 def run_loop(
     state: SearchState,
     proposer: Proposer,

@@ -25,6 +25,7 @@ from jaxdmd.discover import (
     Discovery,
     ae_problem,
     de_problem,
+    refit_bias_compensated,
     refit_integral,
     resume_or_init,
     run_loop,
@@ -193,6 +194,14 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="SECONDS",
         help="refit the final state equations' parameters in the integral form over windows "
         "of this length (0: keep the search's fit; default 0.5 s)",
+    )
+    g.add_argument(
+        "--ae-bias-correction",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refit the AE equations by bias-compensated least squares, correcting for the "
+        "noise of the estimated states (default; off with --no-ae-bias-correction or "
+        "--given-derivatives)",
     )
     g.add_argument(
         "--gamma",
@@ -422,6 +431,7 @@ _RUN_KEYS = (
     "integral",
     "gamma",
     "refit_integral",
+    "ae_bias_correction",
 )
 
 
@@ -488,6 +498,7 @@ def discover_recordings(
     ae = ae_state = None
     ae_seconds = 0.0
     ae_skipped = None
+    bias_report: dict[str, str] | None = None
     if getattr(args, "skip_ae", False):
         ae_skipped = "--skip-ae"
     elif not any(v.role == "algebraic" for v in de.contract.library):
@@ -497,6 +508,11 @@ def discover_recordings(
         ae_state, ae, ae_seconds = loop(
             "AE", *ae_problem(train, de.contract, smooth=estimated), ae_key
         )
+        if estimated and getattr(args, "ae_bias_correction", False):
+            start = time.perf_counter()
+            states = [v.name for v in de.contract.states]
+            ae, bias_report = refit_bias_compensated(ae, train, states)
+            ae_seconds += time.perf_counter() - start
     summary: dict[str, object] = {
         "proposer": getattr(proposer, "name", "offline"),
         "settings": {k: getattr(args, k) for k in _RUN_KEYS if hasattr(args, k)},
@@ -506,6 +522,8 @@ def discover_recordings(
         summary["ae_skipped"] = ae_skipped
     if ae is not None and ae_state is not None:
         summary["ae"] = loop_summary(ae_state, ae, ae_seconds)
+        if bias_report is not None:  # "params"/"equations" are then the refitted ones
+            summary["ae"]["bias_compensated"] = bias_report  # type: ignore[index]
         if test:
             summary["ae"]["test_r2"] = ae_test_r2(ae, list(test))  # type: ignore[index]
     stats = getattr(proposer, "stats", None)
