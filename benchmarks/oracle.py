@@ -85,20 +85,11 @@ def _source(name: str, args: list[str], outputs: list[str], eqs: list[list[str]]
 def _fit(source: str, problem, args: list[str], n_out: int, seed: int):
     import jax
 
-    from jaxdmd.fit import FitConfig, fit_batch
+    from jaxdmd.search import fit_problem
     from jaxdmd.skeleton import compile_skeleton
 
     sk = compile_skeleton(source, variables=tuple(args), n_outputs=n_out)
-    names = sorted(set(sk.arguments))
-    (res,) = fit_batch(
-        [sk],
-        {n: problem.variables[n] for n in names},
-        problem.targets,
-        key=jax.random.key(seed),
-        config=FitConfig(),
-        weights=problem.weights,
-        operator=problem.operator,
-    )
+    (res,) = fit_problem([sk], problem, jax.random.key(seed))
     if res.error is not None:
         raise RuntimeError(res.error)
     return sk, res

@@ -419,19 +419,12 @@ def fit_oracle(
     from jaxdmd.discover import de_problem
     from jaxdmd.fit import FitConfig, fit_batch
     from jaxdmd.rollout import Block
+    from jaxdmd.search import fit_problem
     from jaxdmd.skeleton import compile_skeleton
 
     problem, _ = de_problem(train, matched=integral is None, integral=integral)
     de_sk = compile_skeleton(ORACLE_DE_SOURCE, variables=ORACLE_DE_ARGS, n_outputs=len(STATES))
-    (de_fit,) = fit_batch(
-        [de_sk],
-        {n: problem.variables[n] for n in de_sk.arguments},
-        problem.targets,
-        key=jax.random.key(seed),
-        config=FitConfig(),
-        weights=problem.weights,
-        operator=problem.operator,
-    )
+    (de_fit,) = fit_problem([de_sk], problem, jax.random.key(seed))
     if de_fit.error is not None:
         raise RuntimeError(f"oracle DE fit: {de_fit.error}")
     ae_sk = compile_skeleton(

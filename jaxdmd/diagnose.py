@@ -818,8 +818,9 @@ def _keep_unflagged(
         found.contract.function_name, found.contract.arguments, lines, found.contract.outputs
     )
     skeleton = search._compile(source, found.contract)
-    (result,) = search._fit([skeleton], state.problem, jax.random.fold_in(state.key, 11),
-                            state.config.fit)  # fmt: skip
+    (result,) = search.fit_problem(
+        [skeleton], state.problem, jax.random.fold_in(state.key, 11), state.config.fit
+    )
     if result.error is not None:
         return found
     return Equations(

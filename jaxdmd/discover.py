@@ -293,19 +293,9 @@ def refit_integral(
     remain the search's, in its own form) and the integral-form NMSE of each equation. If the
     refit fails the equations are returned unchanged, with NaN for those NMSEs.
     """
-    from jaxdmd.fit import fit_batch
-
     contract = equations.contract
     problem, _ = de_problem(datasets, states=contract.targets, integral=width, smooth=True)
-    skeleton = equations.skeleton()
-    (result,) = fit_batch(
-        [skeleton],
-        {n: problem.variables[n] for n in skeleton.arguments},
-        problem.targets,
-        key=key,
-        config=config or FitConfig(),
-        operator=problem.operator,
-    )
+    (result,) = search.fit_problem([equations.skeleton()], problem, key, config)
     if result.error is not None:
         return equations, tuple(float("nan") for _ in contract.targets)
     refit = dataclasses.replace(equations, params=tuple(float(x) for x in result.params))

@@ -151,9 +151,14 @@ def _compile(text: str, contract: Contract) -> Skeleton:
         return compile_skeleton(text, variables=contract.arguments, n_outputs=len(contract.targets))
 
 
-def _fit(
-    skeletons: Sequence[Skeleton], problem: Problem, key: jax.Array, config: FitConfig
+def fit_problem(
+    skeletons: Sequence[Skeleton],
+    problem: Problem,
+    key: jax.Array,
+    config: FitConfig | None = None,
 ) -> list[FitResult]:
+    """Fit skeletons to a loop's problem (its variables, targets, weights and operator)."""
+    config = config or FitConfig()
     names = sorted({a for s in skeletons for a in s.arguments})
     variables = {n: problem.variables[n] for n in names}
     return fit_batch(
@@ -191,7 +196,7 @@ def init(
     _check_problem(problem, contract)
     key, fit_key = jax.random.split(key)
     skeleton = _compile(seed or linear_seed(contract), contract)
-    (result,) = _fit([skeleton], problem, fit_key, config.fit)
+    (result,) = fit_problem([skeleton], problem, fit_key, config.fit)
     if result.error is not None:
         raise ValueError(f"the seed skeleton could not be fitted: {result.error}")
     archive = arc.new_archive(
@@ -283,7 +288,7 @@ def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, Ro
     best_before = arc.best(archive).score
     n_valid = 0
     if candidates:
-        results = _fit([c[0] for c in candidates], state.problem, fit_key, state.config.fit)
+        results = fit_problem([c[0] for c in candidates], state.problem, fit_key, state.config.fit)
         for (skeleton, island), result in zip(candidates, results, strict=True):
             if result.error is not None or not np.isfinite(result.score):
                 dropped[f"fit: {result.error or 'non-finite score'}"] += 1
@@ -575,7 +580,7 @@ def final_equations(
     )
     try:
         skeleton = _compile(source, state.contract)
-        (result,) = _fit(
+        (result,) = fit_problem(
             [skeleton], state.problem, jax.random.fold_in(state.key, 7), state.config.fit
         )
     except SkeletonError as err:
