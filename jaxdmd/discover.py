@@ -140,16 +140,12 @@ def noise_weights(datasets: Sequence[Dataset]) -> np.ndarray:
     value); weighting the squared errors by its inverse is generalised least squares for
     independent errors. The weights are normalised to mean 1 over all recordings.
     """
-    from jaxdmd.data import differentiate
-
     cache: dict[tuple[bytes, tuple[float, ...]], np.ndarray] = {}
     parts = []
     for ds in datasets:
         key = (np.asarray(ds.t).tobytes(), ds.events)
         if key not in cache:
-            n = ds.n_samples
-            _, d = differentiate(ds.t, np.eye(n), events=ds.events)
-            cache[key] = 1.0 / np.sum(d**2, axis=1)
+            cache[key] = 1.0 / estimator_gains(ds).derivative_square
         parts.append(cache[key])
     w = np.concatenate(parts)
     return w / w.mean()
@@ -302,42 +298,46 @@ def refit_integral(
     return refit, tuple(float(x) for x in result.losses)
 
 
-def _smoother_gains(ds: Dataset, block: int = 2000) -> tuple[np.ndarray, np.ndarray]:
-    """For the default smoother S of ``ds`` (``differentiate``): diag(S) and sum_k S_ik^2, [n].
+@dataclass(frozen=True)
+class EstimatorGains:
+    """How the default estimator (``jaxdmd.data.differentiate``: smoothed values ``S x``,
+    derivatives ``D x``) passes white noise, per sample of one recording, [n] each."""
 
-    Built column block by column block (S is linear in the samples), so memory stays n x block.
+    smoother_diagonal: np.ndarray  # S_ii
+    smoother_square: np.ndarray  # sum_k S_ik^2
+    derivative_square: np.ndarray  # sum_k D_ik^2
+
+
+def estimator_gains(ds: Dataset, block: int = 2000) -> EstimatorGains:
+    """The :class:`EstimatorGains` of ``ds``'s time grid and events.
+
+    S and D are linear in the samples, so they are built from unit samples, a block of columns
+    at a time: memory stays n x block.
     """
     from jaxdmd.data import differentiate
 
     n = ds.n_samples
-    diag, square = np.zeros(n), np.zeros(n)
+    diagonal, s_square, d_square = np.zeros(n), np.zeros(n), np.zeros(n)
     for start in range(0, n, block):
         cols = np.arange(start, min(n, start + block))
         unit = np.zeros((n, cols.size))
         unit[cols, np.arange(cols.size)] = 1.0
-        s_cols, _ = differentiate(ds.t, unit, events=ds.events)  # S[:, cols]
-        diag[cols] = s_cols[cols, np.arange(cols.size)]
-        square += np.sum(s_cols**2, axis=1)
-    return diag, square
+        s_cols, d_cols = differentiate(ds.t, unit, events=ds.events)  # S[:, cols], D[:, cols]
+        diagonal[cols] = s_cols[cols, np.arange(cols.size)]
+        s_square += np.sum(s_cols**2, axis=1)
+        d_square += np.sum(d_cols**2, axis=1)
+    return EstimatorGains(diagonal, s_square, d_square)
 
 
-def noise_variance(
-    ds: Dataset, names: Sequence[str], gains: tuple[np.ndarray, np.ndarray] | None = None
-) -> dict[str, float]:
-    """The white-noise variance of each channel, from the residual of the default smoother.
+def _residual_variance(x: np.ndarray, smooth: np.ndarray, gains: EstimatorGains) -> np.ndarray:
+    """The white-noise variance of each column of ``x`` [n, k] from the smoother's residual.
 
     With x = s + e, E|x - Sx|^2 = sigma^2 sum_i (1 - 2 S_ii + sum_k S_ik^2) for a signal the
     smoother passes. What it does not pass (a wrapped angle, a fast transient) counts as noise,
-    so the estimate suits smooth channels such as the states. ``gains``: the smoother's
-    ``(diag, sum of squares)`` if already computed (:func:`_smoother_gains`).
+    so the estimate suits smooth channels such as the states.
     """
-    from jaxdmd.data import differentiate
-
-    diag, square = gains if gains is not None else _smoother_gains(ds)
-    x = np.stack([np.asarray(ds[n], dtype=float) for n in names], axis=1)
-    smooth, _ = differentiate(ds.t, x, events=ds.events)
-    variance = np.sum((x - smooth) ** 2, axis=0) / np.sum(1.0 - 2.0 * diag + square)
-    return {n: float(v) for n, v in zip(names, variance, strict=True)}
+    passed = np.sum(1.0 - 2.0 * gains.smoother_diagonal + gains.smoother_square)
+    return np.sum((x - smooth) ** 2, axis=0) / passed
 
 
 def refit_bias_compensated(
@@ -348,10 +348,11 @@ def refit_bias_compensated(
     Least squares on noisy regressors is biased towards zero and mixes the coefficients
     (errors in variables): with features G of the regressors, E[G'G] = G0'G0 + C, where C is
     the covariance of the features' noise. The channels in ``noisy`` (the states, which the AE
-    loop fits on as smoothed estimates) get their noise variance estimated from the data
-    (:func:`noise_variance`) and scaled by the smoother's share of it; it is propagated to the
-    features through their Jacobian in those channels (first order), and each equation that is
-    affine in its parameters is refitted as p = (G'G - C)^-1 G'y on the smoothed states. The
+    loop fits on as smoothed estimates) get their noise variance estimated from the data (the
+    smoother's residual, :func:`_residual_variance`) and scaled by the smoother's share of it;
+    it is propagated to the features through their Jacobian in those channels (first order),
+    and each equation that is affine in its parameters is refitted as p = (G'G - C)^-1 G'y on
+    the smoothed states. The
     other channels are taken as measured without noise. An equation that is not affine in p,
     or whose corrected matrix is not positive definite, keeps its parameters. Returns the
     equations and, per target, what was done.
@@ -361,10 +362,15 @@ def refit_bias_compensated(
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
-    gains = [_smoother_gains(ds) for ds in datasets]
     noisy = tuple(noisy)
-    variances = [noise_variance(ds, noisy, g) for ds, g in zip(datasets, gains, strict=True)]
     prepared = [ds.with_estimated_derivatives(smooth=True) for ds in datasets]
+    # per recording: the noise variance of each smoothed sample of each noisy channel, [n]
+    variances = []
+    for ds, smooth in zip(datasets, prepared, strict=True):
+        gains = estimator_gains(ds)
+        x, xs = (np.stack([np.asarray(d[a], dtype=float) for a in noisy], 1) for d in (ds, smooth))
+        sigma2 = _residual_variance(x, xs, gains)
+        variances.append({a: v * gains.smoother_square for a, v in zip(noisy, sigma2, strict=True)})
     report: dict[str, str] = {}
     for target, line, mapping in zip(contract.targets, lines, mappings, strict=True):
         skeleton = search._line_skeleton(contract, line)
@@ -381,7 +387,7 @@ def refit_bias_compensated(
         gram = correction = 0.0
         cross = 0.0
         affine = True
-        for ds, raw, (_, gain), variance in zip(prepared, datasets, gains, variances, strict=True):
+        for ds, raw, variance in zip(prepared, datasets, variances, strict=True):
             args = np.stack([np.asarray(ds[a], dtype=float) for a in names], axis=1)
             zero, one = jnp.zeros(n_p), jnp.ones(n_p)
             g = np.asarray(features(args, zero))
@@ -390,9 +396,8 @@ def refit_bias_compensated(
                 break
             offset = np.asarray(offsets(args, zero))
             jac = np.asarray(sensitivity(args, zero))  # [n, P, A]: d feature / d channel
-            weight = np.stack(
-                [variance.get(a, 0.0) * gain for a in names], axis=1
-            )  # [n, A]: the noise variance of each (smoothed) regressor sample
+            none = np.zeros(ds.n_samples)
+            weight = np.stack([variance.get(a, none) for a in names], axis=1)  # [n, A]
             y = np.asarray(raw[target], dtype=float) - offset
             gram = gram + g.T @ g
             cross = cross + g.T @ y
