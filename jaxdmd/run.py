@@ -332,8 +332,7 @@ def loop_summary(
         "wall_time_s": seconds,
     }
     if refit is not None:  # the parameters above were refitted; nmse/score are the search's
-        nmse = tuple(refit["nmse"])  # type: ignore[call-overload]
-        out["refit"] = {**refit, "nmse": dict(zip(eq.contract.targets, nmse, strict=True))}
+        out["refit"] = refit
     return out
 
 
@@ -452,10 +451,10 @@ def discover_recordings(
     config = _config(args)
     key = jax.random.key(args.seed)
     de_key, ae_key = jax.random.split(key)
-    estimated = not (getattr(args, "data", None) and getattr(args, "given_derivatives", False))
-    integral = getattr(args, "integral", None)
+    estimated = not (args.data and args.given_derivatives)
+    integral = args.integral
     matched = estimated and integral is None
-    weighted = matched and getattr(args, "weighted", False)
+    weighted = matched and args.weighted
 
     def loop(
         name: str, problem: search.Problem, contract, key
@@ -463,7 +462,7 @@ def discover_recordings(
         start = time.perf_counter()
         checkpoint = out / f"{name.lower()}_state.json"
         cfg = config
-        if getattr(args, "gamma", None) is not None:
+        if args.gamma is not None:
             cfg = dataclasses.replace(config, gamma=args.gamma)
         elif name == "DE" and (integral or weighted):
             # the paper's gamma is in plain derivative NMSE; the true structure's weighted and
@@ -490,16 +489,17 @@ def discover_recordings(
         de_key,
     )
     refit = None
-    if getattr(args, "refit_integral", 0.0):
+    if args.refit_integral:
         de, refit_nmse = refit_integral(
             de, train, args.refit_integral, jax.random.fold_in(de_key, 9)
         )
-        refit = {"form": "integral", "window_s": args.refit_integral, "nmse": refit_nmse}
+        nmse = dict(zip(de.contract.targets, refit_nmse, strict=True))
+        refit = {"form": "integral", "window_s": args.refit_integral, "nmse": nmse}
     ae = ae_state = None
     ae_seconds = 0.0
     ae_skipped = None
     bias_report: dict[str, str] | None = None
-    if getattr(args, "skip_ae", False):
+    if args.skip_ae:
         ae_skipped = "--skip-ae"
     elif not any(v.role == "algebraic" for v in de.contract.library):
         ae_skipped = "the DE loop used no algebraic variable: there is nothing to close"
@@ -508,14 +508,14 @@ def discover_recordings(
         ae_state, ae, ae_seconds = loop(
             "AE", *ae_problem(train, de.contract, smooth=estimated), ae_key
         )
-        if estimated and getattr(args, "ae_bias_correction", False):
+        if estimated and args.ae_bias_correction:
             start = time.perf_counter()
             states = [v.name for v in de.contract.states]
             ae, bias_report = refit_bias_compensated(ae, train, states)
             ae_seconds += time.perf_counter() - start
     summary: dict[str, object] = {
         "proposer": getattr(proposer, "name", "offline"),
-        "settings": {k: getattr(args, k) for k in _RUN_KEYS if hasattr(args, k)},
+        "settings": {k: getattr(args, k) for k in _RUN_KEYS},
         "de": loop_summary(de_state, de, de_seconds, refit),
     }
     if ae_skipped is not None:

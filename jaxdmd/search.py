@@ -533,6 +533,7 @@ def final_equations(
     n_out = len(state.contract.targets)
     groups = state.problem.groups
     use_cv = groups is not None and len(np.unique(np.asarray(groups))) > 1
+    states = {v.name for v in state.contract.states}
     chosen: list[ln.Line] = []
     for j in range(n_out):
         lines: dict[str, tuple[float, ln.Line]] = {}
@@ -549,7 +550,6 @@ def final_equations(
             else np.array([loss for loss, _ in options])
         )
         bound = float(np.min(scores)) * (1 + tolerance) + floor
-        states = {v.name for v in state.contract.states}
         ranked = sorted(
             (
                 line.n_params,
