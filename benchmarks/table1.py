@@ -498,27 +498,30 @@ def run_generator(
         for s in STATES:
             traj[f"{key}/{s}"] = np.asarray(res[s])
 
-    # SINDy baselines
-    for key in SINDY_ROWS:
-        kind = key.removeprefix("sindy_")
+    def record(key: str, fit: Callable[[], tuple[Callable, float, dict[str, Any]]]) -> None:
+        """Row ``key``: ``fit()`` gives the rollout, its fit time and extra fields."""
         try:
-            t0 = time.perf_counter()
-            base = sindy_baseline(train, kind)  # type: ignore[arg-type]
-            fit_s = time.perf_counter() - t0
-            row, first, _ = _rollouts(base.rollout, test)
+            simulate, fit_s, extra = fit()
+            row, first, _ = _rollouts(simulate, test)
             row.update(
-                fit_time_s=fit_s,
-                wall_time_s=fit_s + row["rollout_time_s"],
-                rounds=None,
-                threshold=base.threshold,
-                n_terms=base.n_terms,
-                equations=base.equations(),
+                fit_time_s=fit_s, wall_time_s=fit_s + row["rollout_time_s"], rounds=None, **extra
             )
             keep(key, first)
         except Exception as exc:
             row = _error(exc)
         rows[key] = row
         _log(f"gen {gen}: {key}: {_short(row)}")
+
+    def sindy(kind: str) -> tuple[Callable, float, dict[str, Any]]:
+        t0 = time.perf_counter()
+        base = sindy_baseline(train, kind)  # type: ignore[arg-type]
+        fit_s = time.perf_counter() - t0
+        extra = dict(threshold=base.threshold, n_terms=base.n_terms, equations=base.equations())
+        return base.rollout, fit_s, extra
+
+    # SINDy baselines
+    for key in SINDY_ROWS:
+        record(key, lambda key=key: sindy(key.removeprefix("sindy_")))
 
     # oracle
     try:
@@ -544,18 +547,14 @@ def run_generator(
             ("oracle_dae", "dae", o_ae),
             ("oracle_dae_true_ae", "dae", true_ae),
         ):
-            try:
-                row, first, _ = _rollouts(
-                    lambda ds, mode=mode, a=o_ae_row: rollout(o_de, ds, ae=a, mode=mode),
-                    test,
-                )
-                row.update(fit_time_s=o_fit_s, wall_time_s=o_fit_s + row["rollout_time_s"])
-                row["rounds"] = None
-                keep(key, first)
-            except Exception as exc:
-                row = _error(exc)
-            rows[key] = row
-            _log(f"gen {gen}: {key}: {_short(row)}")
+            record(
+                key,
+                lambda mode=mode, a=o_ae_row: (
+                    lambda ds: rollout(o_de, ds, ae=a, mode=mode),
+                    o_fit_s,
+                    {},
+                ),
+            )
 
     # jaxdmd
     try:
