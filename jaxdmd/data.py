@@ -152,6 +152,15 @@ def _spline(t: np.ndarray, x: np.ndarray, lam: float | None) -> tuple[np.ndarray
     return value, slope
 
 
+def event_samples(t: np.ndarray, events: Sequence[float]) -> np.ndarray:
+    """Which samples fall on an event time (to a thousandth of the median step), [n] bool."""
+    tol = 1e-3 * float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    hit = np.zeros(t.shape[0], dtype=bool)
+    for e in events:
+        hit |= np.abs(t - e) <= tol
+    return hit
+
+
 def differentiate(
     t: ArrayLike,
     x: ArrayLike,
@@ -751,6 +760,14 @@ class Dataset(eqx.Module):
             derivatives=np.asarray(self.derivatives)[keep],
             events=tuple(e for e in self.events if t0 <= e <= t1),
         )
+
+    def with_values(self, values: Mapping[str, ArrayLike]) -> Dataset:
+        """The same recording with the samples of existing channels replaced (for instance the
+        states by an estimate of them); derivatives, roles and events are kept."""
+        out = np.array(self.values, dtype=np.float64)
+        for name, column in values.items():
+            out[:, self._index(name)] = _check_column(name, column, self.n_samples)
+        return self._rebuild(values=out)
 
     def with_noise(
         self,

@@ -8,6 +8,9 @@ search (:mod:`jaxdmd.search`):
 - :func:`ae_problem`: targets are the algebraic variables the DE loop brought in; inputs the DE
   loop used stay exogenous (they start the AE library); the catalog is the boundary (terminal
   voltage magnitude and angle), so that the discovered DAE closes on the boundary.
+- :func:`smoothed_states`, :func:`model_states`: the AE loop's regressors, the noisy states
+  replaced by an estimate (a generic smoother, or a Kalman smoother with the discovered state
+  equations); :func:`refit_bias_compensated` corrects the AE fit for the noise they keep.
 - :func:`run_loop`: the plain Python loop over ``prompts``, a proposer and ``step``, with a
   callback per round and the state written atomically after each round (resumable).
 """
@@ -24,8 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdmd import lines as ln
 from jaxdmd import search
-from jaxdmd.data import Dataset, matched_filter, stack_samples
+from jaxdmd.data import Dataset, event_samples, matched_filter, stack_samples
+from jaxdmd.estimate import StateEstimate, model_smoother
 from jaxdmd.fit import FitConfig, Operator
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
@@ -73,15 +78,6 @@ def matched_operator(datasets: Sequence[Dataset]) -> Operator:
     return Operator(index, weight)
 
 
-def _event_samples(t: np.ndarray, events: Sequence[float]) -> np.ndarray:
-    """Which samples fall on an event time (to a thousandth of the median step), [n] bool."""
-    tol = 1e-3 * float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
-    hit = np.zeros(t.shape[0], dtype=bool)
-    for e in events:
-        hit |= np.abs(t - e) <= tol
-    return hit
-
-
 def integral_operator(datasets: Sequence[Dataset], width: float) -> tuple[Operator, np.ndarray]:
     """The integral (weak) form of state equations over concatenated recordings.
 
@@ -113,7 +109,7 @@ def integral_operator(datasets: Sequence[Dataset], width: float) -> tuple[Operat
         # an interval that ends at an event (a fault applied or cleared: the sample there holds
         # the values after the jump, the algebraic variables jump) is integrated by its left
         # end alone: averaging across the jump would be wrong by half the jump
-        at_event = _event_samples(t, ds.events)  # [n]
+        at_event = event_samples(t, ds.events)  # [n]
         ends_at_event = at_event[1:]  # interval j = (t_j, t_{j+1}]
         share_left = np.where(ends_at_event, 1.0, 0.5)
         share_right = np.where(ends_at_event, 0.0, 0.5)
@@ -340,37 +336,67 @@ def _residual_variance(x: np.ndarray, smooth: np.ndarray, gains: EstimatorGains)
     return np.sum((x - smooth) ** 2, axis=0) / passed
 
 
+def smoothed_states(datasets: Sequence[Dataset], noisy: Sequence[str]) -> list[StateEstimate]:
+    """The channels ``noisy`` (states) replaced by the default smoother's estimates.
+
+    Their white-noise variance is estimated per recording from the smoother's residual
+    (:func:`_residual_variance`); the estimates keep the share ``sum_k S_ik^2`` of it, which is
+    the (diagonal) covariance returned.
+    """
+    noisy = tuple(noisy)
+    out = []
+    for ds in datasets:
+        smooth = ds.with_estimated_derivatives(smooth=True)
+        gains = estimator_gains(ds)
+        x, xs = (np.stack([np.asarray(d[a], dtype=float) for a in noisy], 1) for d in (ds, smooth))
+        sigma2 = _residual_variance(x, xs, gains)
+        covariance = gains.smoother_square[:, None, None] * np.diag(sigma2)[None]
+        noise = dict(zip(noisy, sigma2.tolist(), strict=True))
+        out.append(
+            StateEstimate(
+                ds.with_values(dict(zip(noisy, xs.T, strict=True))),
+                noisy,
+                covariance,
+                {},
+                noise,
+                float("nan"),
+            )
+        )
+    return out
+
+
+def model_states(de: Equations, datasets: Sequence[Dataset]) -> list[StateEstimate]:
+    """The states estimated with the discovered state equations as process model
+    (:func:`jaxdmd.estimate.model_smoother`), their noise variance estimated per recording as in
+    :func:`smoothed_states`. Raises ``ValueError`` if the estimate is not finite."""
+    states = tuple(de.contract.targets)
+    noise = [e.noise for e in smoothed_states(datasets, states)]
+    estimates = model_smoother(de.skeleton(), de.params, states, datasets, noise)
+    for e in estimates:
+        if not (np.all(np.isfinite(e.covariance)) and np.all(np.isfinite(e.dataset.values))):
+            raise ValueError(f"the state estimate of {e.dataset.label!r} is not finite")
+    return estimates
+
+
 def refit_bias_compensated(
-    equations: Equations, datasets: Sequence[Dataset], noisy: Sequence[str]
+    equations: Equations, estimates: Sequence[StateEstimate]
 ) -> tuple[Equations, dict[str, str]]:
     """The AE loop's equations refitted by bias-compensated least squares.
 
     Least squares on noisy regressors is biased towards zero and mixes the coefficients
     (errors in variables): with features G of the regressors, E[G'G] = G0'G0 + C, where C is
-    the covariance of the features' noise. The channels in ``noisy`` (the states, which the AE
-    loop fits on as smoothed estimates) get their noise variance estimated from the data (the
-    smoother's residual, :func:`_residual_variance`) and scaled by the smoother's share of it;
-    it is propagated to the features through their Jacobian in those channels (first order),
-    and each equation that is affine in its parameters is refitted as p = (G'G - C)^-1 G'y on
-    the smoothed states. The
-    other channels are taken as measured without noise. An equation that is not affine in p,
-    or whose corrected matrix is not positive definite, keeps its parameters. Returns the
-    equations and, per target, what was done.
+    the covariance of the features' noise. The regressors are the recordings of ``estimates``
+    (states replaced by an estimate, :func:`smoothed_states` or :func:`model_states`), whose
+    covariance per sample is propagated to the features through their Jacobian in the states
+    (first order); each equation that is affine in its parameters is refitted as
+    p = (G'G - C)^-1 G'y. The other channels are taken as measured without noise. An equation
+    that is not affine in p, or whose corrected matrix is not positive definite, keeps its
+    parameters. Returns the equations and, per target, what was done.
     """
-    from jaxdmd import lines as ln
 
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
-    noisy = tuple(noisy)
-    prepared = [ds.with_estimated_derivatives(smooth=True) for ds in datasets]
-    # per recording: the noise variance of each smoothed sample of each noisy channel, [n]
-    variances = []
-    for ds, smooth in zip(datasets, prepared, strict=True):
-        gains = estimator_gains(ds)
-        x, xs = (np.stack([np.asarray(d[a], dtype=float) for a in noisy], 1) for d in (ds, smooth))
-        sigma2 = _residual_variance(x, xs, gains)
-        variances.append({a: v * gains.smoother_square for a, v in zip(noisy, sigma2, strict=True)})
     report: dict[str, str] = {}
     for target, line, mapping in zip(contract.targets, lines, mappings, strict=True):
         skeleton = search._line_skeleton(contract, line)
@@ -387,7 +413,8 @@ def refit_bias_compensated(
         gram = correction = 0.0
         cross = 0.0
         affine = True
-        for ds, raw, variance in zip(prepared, datasets, variances, strict=True):
+        for estimate in estimates:
+            ds = estimate.dataset
             args = np.stack([np.asarray(ds[a], dtype=float) for a in names], axis=1)
             zero, one = jnp.zeros(n_p), jnp.ones(n_p)
             g = np.asarray(features(args, zero))
@@ -395,13 +422,14 @@ def refit_bias_compensated(
                 affine = False
                 break
             offset = np.asarray(offsets(args, zero))
-            jac = np.asarray(sensitivity(args, zero))  # [n, P, A]: d feature / d channel
-            none = np.zeros(ds.n_samples)
-            weight = np.stack([variance.get(a, none) for a in names], axis=1)  # [n, A]
-            y = np.asarray(raw[target], dtype=float) - offset
+            noisy = [names.index(s) for s in estimate.states if s in names]
+            rows = [estimate.states.index(names[a]) for a in noisy]
+            jac = np.asarray(sensitivity(args, zero))[:, :, noisy]  # [n, P, A] d feature/d state
+            cov = estimate.covariance[:, rows][:, :, rows]  # [n, A, A]
+            y = np.asarray(ds[target], dtype=float) - offset
             gram = gram + g.T @ g
             cross = cross + g.T @ y
-            correction = correction + np.einsum("npa,nqa,na->pq", jac, jac, weight)
+            correction = correction + np.einsum("npa,nab,nqb->pq", jac, cov, jac)
         if not affine:
             report[target] = "kept: not affine in its parameters"
             continue
@@ -414,6 +442,90 @@ def refit_bias_compensated(
         report[target] = "refitted"
     refit = dataclasses.replace(equations, params=tuple(float(x) for x in params))
     return refit, report
+
+
+def refit_joint(
+    de: Equations,
+    ae: Equations,
+    datasets: Sequence[Dataset],
+    *,
+    max_steps: int = 1000,
+) -> tuple[Equations, dict[str, object]]:
+    """The AE equations' parameters by maximum likelihood with the states unknown.
+
+    The model: the states follow the DE equations (process noise as
+    :class:`jaxdmd.estimate.ModelSmoother` chooses it) and are measured with white noise (its
+    variance estimated as in :func:`smoothed_states`); every algebraic variable is measured
+    without noise and equals its AE equation up to an error of unknown variance. The Kalman
+    filter with the AE equations as measurement equations gives the likelihood of the data
+    (its innovations), a differentiable function of the AE parameters and error variances,
+    maximised by BFGS (optimistix) from the given parameters. This is the errors-in-variables
+    estimate that uses every channel: the noisy states, their dynamics, and the clean algebraic
+    measurements, which pin the states down where the equations hold. Kept if it fails or does
+    not raise the likelihood. Returns the equations and a report.
+    """
+    import optimistix as optx
+
+    from jaxdmd.estimate import ModelSmoother
+
+    states = tuple(de.contract.targets)
+    contract = ae.contract
+    noise = [e.noise for e in smoothed_states(datasets, states)]
+    smoother = ModelSmoother(
+        de.skeleton(), de.params, states, datasets, noise, ae=ae.skeleton(),
+        targets=contract.targets,
+    )  # fmt: skip
+    start = np.asarray(ae.params, dtype=float)
+    # start the error variances at the equations' residual on the model-smoothed states
+    estimates = smoother.smooth()
+    skeleton = ae.skeleton()
+    residual = []
+    for e in estimates:
+        data = {n: jnp.asarray(e.dataset[n]) for n in e.dataset.names}
+        pred = np.asarray(skeleton(data, jnp.asarray(start)))
+        residual.append(np.stack([np.asarray(e.dataset[y]) for y in contract.targets]) - pred)
+    residual = np.concatenate(residual, axis=1)
+    # the error variances are kept above 1e-10 of the target's variance: an equation that holds
+    # exactly would otherwise drive its variance to zero and the problem's conditioning with it
+    floor = (
+        1e-10
+        * np.var(
+            np.concatenate(
+                [np.stack([np.asarray(e.dataset[y]) for y in contract.targets]) for e in estimates],
+                axis=1,
+            ),
+            axis=1,
+        )
+        + 1e-300
+    )
+    var0 = np.maximum(np.var(residual, axis=1), 2 * floor)
+
+    n_p = start.size
+
+    def unpack(theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """parameters and error variances from theta = (p, log(variance - floor))"""
+        return theta[:n_p], jnp.asarray(floor) + jnp.exp(theta[n_p:])
+
+    def nll(theta: jax.Array) -> jax.Array:
+        return -smoother.log_likelihood(*unpack(theta))
+
+    theta0 = jnp.asarray(np.concatenate([start, np.log(var0 - floor)]))
+    before = float(nll(theta0))
+    solution = optx.minimise(
+        lambda theta, _: nll(theta), optx.BFGS(rtol=1e-8, atol=1e-8), theta0,
+        max_steps=max_steps, throw=False,
+    )  # fmt: skip
+    theta = solution.value
+    params, fitted = (np.asarray(x) for x in unpack(theta))
+    after = float(nll(theta))
+    steps = int(solution.stats["num_steps"])
+    report: dict[str, object] = {"steps": steps, "nll_before": before, "nll_after": after}
+    if not (np.all(np.isfinite(params)) and np.isfinite(after) and after < before):
+        report["kept"] = "the fit failed or did not raise the likelihood"
+        return ae, report
+    report["error_variance"] = dict(zip(contract.targets, fitted.tolist(), strict=True))
+    report["converged"] = steps < max_steps
+    return dataclasses.replace(ae, params=tuple(float(x) for x in params)), report
 
 
 def run_loop(

@@ -360,7 +360,7 @@ def test_bias_compensated_refit_undoes_the_attenuation_of_a_noisy_state():
     coefficient of x; the bias-compensated refit, with the noise estimated from the data,
     takes it back to 2."""
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import refit_bias_compensated
+    from jaxdmd.discover import refit_bias_compensated, smoothed_states
     from jaxdmd.prompts import Contract, Variable
     from jaxdmd.search import Equations
 
@@ -385,7 +385,8 @@ def test_bias_compensated_refit_undoes_the_attenuation_of_a_noisy_state():
     )  # fmt: skip
     source = "def algebraic(x, u, p):\n    y_ = p[0] * x + p[1] * u\n    return y_\n"
     start = Equations(contract, source, tuple(float(v) for v in plain), (0.0,), 0.0)
-    refit, report = refit_bias_compensated(start, recordings, ["x"])
+    estimates = smoothed_states(recordings, ["x"])
+    refit, report = refit_bias_compensated(start, estimates)
     assert report == {"y": "refitted"}
     assert refit.params[0] == pytest.approx(2.0, rel=0.01)
     assert abs(refit.params[0] - 2.0) < abs(plain[0] - 2.0) / 4
@@ -393,6 +394,6 @@ def test_bias_compensated_refit_undoes_the_attenuation_of_a_noisy_state():
     # an equation that is not affine in its parameters keeps them
     curved = "def algebraic(x, u, p):\n    y_ = p[0] * x + u * p[1] * p[1]\n    return y_\n"
     kept, report = refit_bias_compensated(
-        Equations(contract, curved, (1.0, 1.0), (0.0,), 0.0), recordings, ["x"]
+        Equations(contract, curved, (1.0, 1.0), (0.0,), 0.0), estimates
     )
     assert report["y"].startswith("kept") and kept.params == (1.0, 1.0)
