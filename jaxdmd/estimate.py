@@ -13,7 +13,7 @@ smoother can. That is what this module does:
   event (fault on, clearing: the sample holds the values after the jump) is stepped with its
   left end only, as :func:`jaxdmd.discover.integral_operator` integrates it;
 - measurement: every state, white noise of the variance given per state (by default estimated
-  from the generic smoother's residual, :func:`jaxdmd.discover.state_noise_variances`);
+  from the generic smoother's residual, :func:`jaxdmd.discover.smoothed_states`);
 - process noise: white, of intensity ``(s_i * scale_i)^2`` per state, where ``scale_i`` is the
   RMS of the estimated derivative of state ``i`` and the factors ``s_i`` are chosen by maximum
   likelihood (the filter's innovations), one state at a time over a grid, two sweeps. The model
@@ -22,7 +22,9 @@ smoother can. That is what this module does:
   filtered estimate, exact for equations linear in the states), one ``lax.scan`` each.
 
 Returns the smoothed states and their posterior covariance per sample, which the AE loop's
-bias-compensated refit uses as the noise that remains in its regressors.
+bias-compensated refit uses as the noise that remains in its regressors. With AE equations as
+further measurement equations, :meth:`ModelSmoother.log_likelihood` is the likelihood of all
+the data as a differentiable function of the AE parameters (``jaxdmd.discover.refit_joint``).
 """
 
 from __future__ import annotations
