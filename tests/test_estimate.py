@@ -130,3 +130,33 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     assert abs(refit.params[0] - 2.0) < abs(plain - 2.0) / 5
     again, _ = refit_joint(de, dataclasses.replace(start, params=(2.0,)), recordings, max_steps=300)
     assert again.params[0] == pytest.approx(2.0, rel=0.002)
+
+
+def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():
+    """State equations that are not finite on the data (the log of a negative number) give no
+    usable estimate: the run's AE regressors fall back to the generic smoother and say so;
+    nothing stops. (An equation that merely explodes does not get here: the filter then
+    follows the measurements.)"""
+    import argparse
+
+    from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.run import Progress, _ae_regressors
+    from jaxdmd.search import Equations
+
+    recordings, _ = _recordings(n=2)
+    source = (
+        "def equation(a, w, u, p):\n    d_a = p[0] * jnp.log(a - 100)\n    d_w = p[1] * u\n"
+        "    return d_a, d_w\n"
+    )
+    de = Equations(
+        Contract(loop="DE", targets=("a", "w"),
+                 states=(Variable("a", "state"), Variable("w", "state")),
+                 library=(Variable("u", "input"),), function_name="equation"),
+        source, (1.0, 0.02), (0.0, 0.0), 0.0,
+    )  # fmt: skip
+    progress = Progress()
+    with progress.console.capture() as captured:  # kept off the terminal
+        estimates = _ae_regressors(argparse.Namespace(ae_states="model"), de, recordings, progress)
+    assert "failed" in captured.get()
+    assert estimates[0].process == {}  # the generic smoother's estimate
+    assert np.all(np.isfinite(np.asarray(estimates[0].dataset["a"])))
