@@ -143,7 +143,7 @@ def _bias_compensated_ae(
         estimates = smoothed_states(train, states)
     refit, report = refit_bias_compensated(start, estimates)
     if de is not None:
-        refit, report = refit_joint(de, refit, train)
+        refit, report = refit_joint(de, refit, train, estimates)
     errors, k = {}, 0
     for y in targets:
         n = len(TRUE_AE[y])

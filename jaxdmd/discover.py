@@ -448,6 +448,7 @@ def refit_joint(
     de: Equations,
     ae: Equations,
     datasets: Sequence[Dataset],
+    estimates: Sequence[StateEstimate] | None = None,
     *,
     max_steps: int = 1000,
 ) -> tuple[Equations, dict[str, object]]:
@@ -461,44 +462,36 @@ def refit_joint(
     (its innovations), a differentiable function of the AE parameters and error variances,
     maximised by BFGS (optimistix) from the given parameters. This is the errors-in-variables
     estimate that uses every channel: the noisy states, their dynamics, and the clean algebraic
-    measurements, which pin the states down where the equations hold. Kept if it fails or does
-    not raise the likelihood. Returns the equations and a report.
+    measurements, which pin the states down where the equations hold. ``estimates`` are
+    :func:`model_states` of the same ``datasets`` if the caller has them (their noise variances,
+    process noise and states are reused; else they are computed). Kept if it fails or does not
+    raise the likelihood. Returns the equations and a report.
     """
     import optimistix as optx
 
     from jaxdmd.estimate import ModelSmoother
 
+    if estimates is None or not estimates[0].from_model:
+        estimates = model_states(de, datasets)
     states = tuple(de.contract.targets)
     contract = ae.contract
-    noise = [e.noise for e in smoothed_states(datasets, states)]
+    skeleton = ae.skeleton()
     smoother = ModelSmoother(
-        de.skeleton(), de.params, states, datasets, noise, ae=ae.skeleton(),
-        targets=contract.targets,
+        de.skeleton(), de.params, states, datasets, [e.noise for e in estimates],
+        ae=skeleton, targets=contract.targets, process=estimates[0].process,
     )  # fmt: skip
     start = np.asarray(ae.params, dtype=float)
-    # start the error variances at the equations' residual on the model-smoothed states
-    estimates = smoother.smooth()
-    skeleton = ae.skeleton()
-    residual = []
+    # start the error variances at the equations' residual on the model-smoothed states, and
+    # keep them above 1e-10 of the target's variance: an equation that holds exactly would
+    # otherwise drive its variance to zero, and the problem's conditioning with it
+    observed, predicted = [], []
     for e in estimates:
         data = {n: jnp.asarray(e.dataset[n]) for n in e.dataset.names}
-        pred = np.asarray(skeleton(data, jnp.asarray(start)))
-        residual.append(np.stack([np.asarray(e.dataset[y]) for y in contract.targets]) - pred)
-    residual = np.concatenate(residual, axis=1)
-    # the error variances are kept above 1e-10 of the target's variance: an equation that holds
-    # exactly would otherwise drive its variance to zero and the problem's conditioning with it
-    floor = (
-        1e-10
-        * np.var(
-            np.concatenate(
-                [np.stack([np.asarray(e.dataset[y]) for y in contract.targets]) for e in estimates],
-                axis=1,
-            ),
-            axis=1,
-        )
-        + 1e-300
-    )
-    var0 = np.maximum(np.var(residual, axis=1), 2 * floor)
+        predicted.append(np.asarray(skeleton(data, jnp.asarray(start))))
+        observed.append(np.stack([np.asarray(e.dataset[y]) for y in contract.targets]))
+    observed = np.concatenate(observed, axis=1)  # [targets, samples]
+    floor = 1e-10 * np.var(observed, axis=1) + 1e-300
+    var0 = np.maximum(np.var(observed - np.concatenate(predicted, axis=1), axis=1), 2 * floor)
 
     n_p = start.size
 

@@ -59,6 +59,11 @@ class StateEstimate:
     noise: dict[str, float]
     log_likelihood: float
 
+    @property
+    def from_model(self) -> bool:
+        """Estimated with a process model (:class:`ModelSmoother`), not a generic smoother."""
+        return bool(self.process)
+
 
 def _transition(rate):
     """x_{k+1} = step(x_k, u_k, u_{k+1}, h, left): Heun's rule with measured non-states; an
@@ -159,7 +164,8 @@ class ModelSmoother:
     variances are given to :meth:`smooth` and :meth:`log_likelihood` (which
     :func:`jaxdmd.discover.refit_joint` maximises).
     The process-noise factors are chosen per state by maximum likelihood over all recordings
-    (:data:`PROCESS_GRID`, coordinate-wise, ``sweeps`` passes) without the AE equations.
+    (:data:`PROCESS_GRID`, coordinate-wise, ``sweeps`` passes) without the AE equations, unless
+    ``process`` gives them (as a smoother of the same recordings chose them).
     """
 
     def __init__(
@@ -174,6 +180,7 @@ class ModelSmoother:
         targets: Sequence[str] = (),
         grid: Sequence[float] = PROCESS_GRID,
         sweeps: int = 2,
+        process: Mapping[str, float] | None = None,
     ) -> None:
         self.states = states = tuple(states)
         self.targets = tuple(targets) if ae is not None else ()
@@ -227,9 +234,12 @@ class ModelSmoother:
         states_only = jax.jit(
             jax.vmap(lambda *a: run_states(*a)[2], in_axes=(0, None, None, None, None, None))
         )
-        factors = np.full(n_states, grid[len(grid) // 2])
+        if process is not None:  # chosen before (by a smoother of the same recordings)
+            factors = np.array([float(process[s]) for s in states])
+        else:
+            factors = np.full(n_states, grid[len(grid) // 2])
         grid_arr = np.asarray(grid)
-        for _ in range(sweeps):
+        for _ in range(0 if process is not None else sweeps):
             for i in range(n_states):
                 trial = np.repeat(factors[None], len(grid_arr), axis=0)
                 trial[:, i] = grid_arr

@@ -493,7 +493,7 @@ def _ae_regressors(
 
 
 def _estimate_summary(estimates: Sequence[StateEstimate]) -> dict[str, object]:
-    model = bool(estimates[0].process)
+    model = estimates[0].from_model
     out: dict[str, object] = {
         "estimate": "model" if model else "smoothed",
         "noise_variance": [e.noise for e in estimates],
@@ -588,7 +588,7 @@ def discover_recordings(
         estimates = _ae_regressors(args, de, train, progress) if estimated else None
         regressors = train if estimates is None else [e.dataset for e in estimates]
         states_seconds = time.perf_counter() - start
-        fine = estimates is not None and bool(estimates[0].process)
+        fine = estimates is not None and estimates[0].from_model
         ae_state, ae, ae_seconds = loop(
             "AE", *ae_problem(regressors, de.contract), ae_key, fine=fine
         )
@@ -601,7 +601,9 @@ def discover_recordings(
             start = time.perf_counter()
             progress.console.print("AE refit: maximum likelihood with the states unknown ...")
             try:
-                ae, joint_report = refit_joint(de, ae, train, max_steps=args.ae_joint_steps)
+                ae, joint_report = refit_joint(
+                    de, ae, train, estimates, max_steps=args.ae_joint_steps
+                )
             except (ValueError, np.linalg.LinAlgError) as err:
                 joint_report = {"kept": f"the joint refit failed: {err}"}
             joint_report["seconds"] = time.perf_counter() - start
