@@ -161,8 +161,8 @@ class ModelSmoother:
     recording (floored at 1e-12 of the state's variance, so that a clean state still gives a
     regular filter). With ``ae`` (a compiled AE skeleton of the ``targets``), the algebraic
     variables are measurements too, through the AE equations, whose parameters and error
-    variances are given to :meth:`smooth` and :meth:`log_likelihood` (which
-    :func:`jaxdmd.discover.refit_joint` maximises).
+    variances are given to :meth:`log_likelihood` (which :func:`jaxdmd.discover.refit_joint`
+    maximises); :meth:`smooth` estimates the states from their own measurements.
     The process-noise factors are chosen per state by maximum likelihood over all recordings
     (:data:`PROCESS_GRID`, coordinate-wise, ``sweeps`` passes) without the AE equations, unless
     ``process`` gives them (as a smoother of the same recordings chose them).
@@ -210,27 +210,22 @@ class ModelSmoother:
             for n in lengths
         ]
         de_p = jnp.asarray(de_params, dtype=jnp.float64)
+        step = _transition(_call(de.fn, de_p, de.arguments, states))
 
-        def run(ae_p, q, r, y, u, h, left):
-            step = _transition(_call(de.fn, de_p, de.arguments, states))
-            observe = _identity
-            if ae is not None:
-                relation = _call(ae.fn, ae_p, ae.arguments, states)
+        def run_states(q, r, y, u, h, left):
+            return _filter_smoother(step, _identity, y[0], jnp.diag(r), y, u, h, left, q, r)
 
-                def observe(x, uk):
-                    return jnp.concatenate([x, relation(x, uk)])
+        def run_joint(ae_p, q, r, y, u, h, left):
+            relation = _call(ae.fn, ae_p, ae.arguments, states)
+
+            def observe(x, uk):
+                return jnp.concatenate([x, relation(x, uk)])
 
             x0 = y[0, :n_states]
             return _filter_smoother(step, observe, x0, jnp.diag(r[:n_states]), y, u, h, left, q, r)
 
-        self._run_raw = run
-        self._run = jax.jit(run)
-        step_plain = _transition(_call(de.fn, de_p, de.arguments, states))
-
-        def run_states(q, r, y, u, h, left):
-            return _filter_smoother(step_plain, _identity, y[0], jnp.diag(r), y, u, h, left, q, r)
-
         self._run_states = jax.jit(run_states)
+        self._run_joint = run_joint
         states_only = jax.jit(
             jax.vmap(lambda *a: run_states(*a)[2], in_axes=(0, None, None, None, None, None))
         )
@@ -261,29 +256,18 @@ class ModelSmoother:
             rr = jnp.concatenate(
                 [r, jnp.broadcast_to(ae_variance, (r.shape[0], *ae_variance.shape))], axis=1
             )
-            ll = jax.vmap(lambda *a: self._run_raw(ae_params, self._q, *a)[2])(rr, y, u, h, left)
+            ll = jax.vmap(lambda *a: self._run_joint(ae_params, self._q, *a)[2])(rr, y, u, h, left)
             total = total + jnp.sum(ll)
         return total
 
-    def smooth(
-        self, ae_params: Sequence[float] = (), ae_variance: Sequence[float] = ()
-    ) -> list[StateEstimate]:
-        """The smoothed states of every recording; with ``ae_params`` (if the smoother has AE
-        equations), the algebraic variables measured through them, with errors of variance
-        ``ae_variance`` per target."""
-        joint = bool(self.targets) and len(ae_params) > 0
-        ae_p = jnp.asarray(ae_params, dtype=jnp.float64)
-        extra = np.asarray(ae_variance, dtype=float)
+    def smooth(self) -> list[StateEstimate]:
+        """The smoothed states of every recording (the states measured, not the AE targets)."""
         n_states = len(self.states)
         out = []
         for ds, (y, u, h, left, r), var in zip(
             self.datasets, self._prepared, self.noise, strict=True
         ):
-            if joint:
-                rr = jnp.asarray(np.concatenate([r, extra]))
-                m, cov, ll = self._run(ae_p, self._q, rr, y, u, h, left)
-            else:
-                m, cov, ll = self._run_states(self._q, jnp.asarray(r), y[:, :n_states], u, h, left)
+            m, cov, ll = self._run_states(self._q, jnp.asarray(r), y[:, :n_states], u, h, left)
             values = {s: np.asarray(m[:, j]) for j, s in enumerate(self.states)}
             out.append(
                 StateEstimate(
