@@ -45,7 +45,10 @@ from jax import lax
 
 from jaxdmd import skeleton as sk
 
-__all__ = ["OPCODES", "LoweringError", "Program", "evaluate_numpy", "lower", "program_of", "run"]
+__all__ = [
+    "OPCODES", "RULES", "LoweringError", "Program", "evaluate_numpy", "lower", "program_of", "run",
+    "run_numpy",
+]  # fmt: skip
 
 # opcode name -> number of register operands (var/param/const take an index or an immediate)
 OPCODES: tuple[str, ...] = (
@@ -542,36 +545,204 @@ def evaluate_numpy(
                 out = np.asarray(imm).reshape(1, 1)
             else:
                 x, y, z = (operand(*t) for t in zip(kinds, (a, b, c), consts, strict=True))
-                out = np.power(x, imm) if name == "powc" else _NUMPY[name](x, y, z)
+                out = RULES[name][0](np, x, y, z, imm)
             regs[d] = out
         outs = [np.broadcast_to(regs[r], (n_batch, n)) for r in program.outputs.tolist()]
     return np.stack(outs, axis=1).astype(np.float64)
 
 
-def _np_float(x: Any) -> Any:
-    return np.asarray(x, dtype=np.float64)
+def run_numpy(
+    program: Program, rows: np.ndarray, q: np.ndarray, tangents: bool = True, careful: bool = True
+) -> tuple[list[Any], list[Any]]:
+    """Run a program with forward-mode derivatives on the host: the NumPy twin of :func:`run`.
+
+    ``rows`` ``[F, N]`` are the rows ``var`` instructions read, ``q`` ``[R, P]`` the parameters
+    (one row per restart). Returns, per output, its value (broadcastable to ``[R, N]``) and its
+    tangent (broadcastable to ``[R, P, N]``; None where it does not depend on ``q``, or for every
+    output when ``tangents`` is False). Values stay as small as their dependence allows (a
+    parameter times a row is ``[R, N]``, its tangent ``[1, P, N]``), and an identically zero
+    partial derivative skips the operand's tangent, as in :func:`run`.
+
+    ``careful``: a zero partial derivative times an infinite tangent entry (or the reverse) gives
+    0, as in :func:`run`; without it such a product is NaN. The two agree wherever the result
+    is finite (a non-finite product can only vanish through a structural zero, which both
+    skip), so a caller may run without care and again with it only when a tangent is not
+    finite. Call inside ``np.errstate(all="ignore")``: non-finite trial points warn otherwise.
+    """
+    n_p = q.shape[1]
+    basis = np.eye(n_p)[:, None, :, None]  # basis[j]: the tangent [1, P, 1] of q[:, j]
+    val: list[Any] = [None] * program.n_regs
+    tan: list[Any] = [None] * program.n_regs
+
+    def operand(kind: int, index: int, value: float) -> tuple[Any, Any]:
+        if kind == 0:
+            return val[index], tan[index]
+        if kind == 1:
+            return rows[index][None, :], None
+        if kind == 2:
+            return q[:, index : index + 1], basis[index] if tangents else None
+        return value, None
+
+    for rule, operands, imm, dst in _host_code(program):
+        if rule is None:  # a load
+            v, t = operand(*operands[0])
+        else:
+            value, partials = rule
+            ops = [operand(*o) for o in operands]
+            xs = [x for x, _ in ops]
+            v = value(np, *xs, imm)
+            t = None
+            if tangents and any(tx is not None for _, tx in ops):
+                for dx, (_, tx) in zip(partials(np, *xs, imm, v), ops, strict=False):
+                    if dx is not None and tx is not None:
+                        term = _chain(dx, tx, careful)
+                        t = term if t is None else t + term
+        val[dst], tan[dst] = v, t
+    outputs = program.outputs.tolist()
+    return [val[r] for r in outputs], [tan[r] for r in outputs]
 
 
-_NUMPY: dict[str, Callable[[Any, Any, Any], Any]] = {
-    "neg": lambda x, y, z: -x,
-    "add": lambda x, y, z: x + y,
-    "sub": lambda x, y, z: x - y,
-    "mul": lambda x, y, z: x * y,
-    "div": lambda x, y, z: x / y,
-    "pow": lambda x, y, z: np.power(x, y),
-    **{f: (lambda fn: lambda x, y, z: fn(x))(getattr(np, f)) for f in _UNARY_FUNCTIONS},
-    "arctan2": lambda x, y, z: np.arctan2(x, y),
-    "maximum": lambda x, y, z: np.maximum(x, y),
-    "minimum": lambda x, y, z: np.minimum(x, y),
-    "where": lambda x, y, z: np.where(x != 0, y, z),
-    "clip": lambda x, y, z: np.minimum(z, np.maximum(y, x)),
-    "lt": lambda x, y, z: _np_float(x < y),
-    "le": lambda x, y, z: _np_float(x <= y),
-    "gt": lambda x, y, z: _np_float(x > y),
-    "ge": lambda x, y, z: _np_float(x >= y),
-    "eq": lambda x, y, z: _np_float(x == y),
-    "ne": lambda x, y, z: _np_float(x != y),
-    "and": lambda x, y, z: _np_float((x != 0) & (y != 0)),
+@functools.lru_cache(maxsize=4096)
+def _host_code(program: Program) -> list[tuple[Any, tuple[tuple[int, int, Any], ...], Any, int]]:
+    """The program decoded once for :func:`run_numpy`: ``(rule, operands, imm, dst)`` per
+    instruction, ``rule`` None for a load (``var``, ``param``, ``const``) and each operand
+    ``(kind, index, constant)``; three operands for every rule, so that a rule's unused operands
+    are filled (with the number 0)."""
+    code = []
+    for op, a, b, c, d, imm, kinds, consts in zip(
+        program.ops.tolist(), program.a.tolist(), program.b.tolist(), program.c.tolist(),
+        program.dst.tolist(), program.imm.tolist(), program.kinds.tolist(),
+        program.consts.tolist(), strict=True,
+    ):  # fmt: skip
+        name = OPCODES[op]
+        if name in _LEAVES:
+            code.append((None, ((_LEAVES[name], a, np.float64(imm)),), imm, d))
+            continue
+        arity = _ARITY[name]
+        operands = tuple(
+            (k, i, np.float64(x)) if j < arity else (3, 0, np.float64(0.0))
+            for j, (k, i, x) in enumerate(zip(kinds, (a, b, c), consts, strict=True))
+        )
+        code.append((RULES[name], operands, np.float64(imm), d))
+    return code
+
+
+def _chain(partial: Any, tangent: np.ndarray, careful: bool) -> np.ndarray:
+    """``partial * tangent`` with the partial ``[R|1, N|1]`` (or a number) over the tangent's
+    parameter axis; ``careful``: a zero factor gives 0 even against an infinite one."""
+    if np.ndim(partial) == 0:
+        return tangent if partial == 1.0 else partial * tangent
+    partial = partial[:, None, :]
+    term = partial * tangent
+    if careful and not np.all(np.isfinite(term)):
+        term = np.where((partial == 0) | (tangent == 0), 0.0, term)
+    return term
+
+
+# ---------------------------------------------------------------------------------------------
+# Derivative rules, one table for NumPy and JAX
+
+
+def _balanced(xp: Any, x: Any, ans: Any, y: Any) -> Any:
+    """d max(x, y) / dx as JAX defines it: 1 where x wins, 1/2 at ties, else 0."""
+    return xp.where(x == ans, 1.0, 0.0) / xp.where(y == ans, 2.0, 1.0)
+
+
+# (value, partials): value(xp, x, y, z, imm) and partials(xp, x, y, z, imm, value) -> (dx, dy,
+# dz), each an array, a number, or None where it is identically zero (the operand's tangent is
+# then not read: JAX's symbolic zeros). ``xp`` is numpy or jax.numpy. The rules are JAX's own
+# (``jax.lax``'s JVPs), so that both interpreters agree with ``jax.jvp`` of the compiled skeleton.
+_Rule = tuple[Callable[..., Any], Callable[..., tuple[Any, Any, Any]]]
+
+
+def _unary(value: str, partial: Callable[..., Any]) -> _Rule:
+    return (
+        lambda xp, x, y, z, imm: getattr(xp, value)(x),
+        lambda xp, x, y, z, imm, v: (partial(xp, x, v), None, None),
+    )
+
+
+def _compare(fn: Callable[[Any, Any, Any], Any]) -> _Rule:
+    return (
+        lambda xp, x, y, z, imm: xp.asarray(fn(xp, x, y), dtype=xp.float64),
+        lambda xp, x, y, z, imm, v: (None, None, None),
+    )
+
+
+def _clip_partials(xp: Any, x: Any, y: Any, z: Any, imm: Any, v: Any) -> tuple[Any, Any, Any]:
+    m = xp.maximum(y, x)
+    dm = _balanced(xp, m, v, z)
+    return dm * _balanced(xp, x, m, y), dm * _balanced(xp, y, m, x), _balanced(xp, z, v, m)
+
+
+RULES: dict[str, _Rule] = {
+    "neg": (lambda xp, x, y, z, imm: -x, lambda xp, x, y, z, imm, v: (-1.0, None, None)),
+    "add": (lambda xp, x, y, z, imm: x + y, lambda xp, x, y, z, imm, v: (1.0, 1.0, None)),
+    "sub": (lambda xp, x, y, z, imm: x - y, lambda xp, x, y, z, imm, v: (1.0, -1.0, None)),
+    "mul": (lambda xp, x, y, z, imm: x * y, lambda xp, x, y, z, imm, v: (y, x, None)),
+    "div": (
+        lambda xp, x, y, z, imm: x / y,
+        lambda xp, x, y, z, imm, v: (1.0 / y, -x / (y * y), None),
+    ),
+    "pow": (
+        lambda xp, x, y, z, imm: xp.power(x, y),
+        lambda xp, x, y, z, imm, v: (
+            y * xp.power(x, y - 1.0),
+            xp.log(xp.where(x == 0, 1.0, x)) * v,
+            None,
+        ),
+    ),
+    "powc": (
+        lambda xp, x, y, z, imm: xp.power(x, imm),
+        lambda xp, x, y, z, imm, v: (
+            xp.where(imm == 0, 0.0, imm * xp.power(x, imm - 1.0)),
+            None,
+            None,
+        ),
+    ),
+    "sin": _unary("sin", lambda xp, x, v: xp.cos(x)),
+    "cos": _unary("cos", lambda xp, x, v: -xp.sin(x)),
+    "tan": _unary("tan", lambda xp, x, v: 1.0 + v * v),
+    "exp": _unary("exp", lambda xp, x, v: v),
+    "log": _unary("log", lambda xp, x, v: 1.0 / x),
+    "sqrt": _unary("sqrt", lambda xp, x, v: 0.5 / v),
+    "tanh": _unary("tanh", lambda xp, x, v: 1.0 - v * v),
+    "sinh": _unary("sinh", lambda xp, x, v: xp.cosh(x)),
+    "cosh": _unary("cosh", lambda xp, x, v: xp.sinh(x)),
+    "arctan": _unary("arctan", lambda xp, x, v: 1.0 / (1.0 + x * x)),
+    "arcsin": _unary("arcsin", lambda xp, x, v: 1.0 / xp.sqrt(1.0 - x * x)),
+    "arccos": _unary("arccos", lambda xp, x, v: -1.0 / xp.sqrt(1.0 - x * x)),
+    "abs": _unary("abs", lambda xp, x, v: xp.where(x >= 0, 1.0, -1.0)),
+    "sign": _unary("sign", lambda xp, x, v: None),
+    "square": _unary("square", lambda xp, x, v: 2.0 * x),
+    "arctan2": (
+        lambda xp, x, y, z, imm: xp.arctan2(x, y),
+        lambda xp, x, y, z, imm, v: (y / (x * x + y * y), -x / (x * x + y * y), None),
+    ),
+    "maximum": (
+        lambda xp, x, y, z, imm: xp.maximum(x, y),
+        lambda xp, x, y, z, imm, v: (_balanced(xp, x, v, y), _balanced(xp, y, v, x), None),
+    ),
+    "minimum": (
+        lambda xp, x, y, z, imm: xp.minimum(x, y),
+        lambda xp, x, y, z, imm, v: (_balanced(xp, x, v, y), _balanced(xp, y, v, x), None),
+    ),
+    "where": (
+        lambda xp, x, y, z, imm: xp.where(x != 0, y, z),
+        lambda xp, x, y, z, imm, v: (
+            None,
+            xp.asarray(x != 0, dtype=xp.float64),
+            xp.asarray(x == 0, dtype=xp.float64),
+        ),
+    ),
+    "clip": (lambda xp, x, y, z, imm: xp.minimum(z, xp.maximum(y, x)), _clip_partials),
+    "lt": _compare(lambda xp, x, y: x < y),
+    "le": _compare(lambda xp, x, y: x <= y),
+    "gt": _compare(lambda xp, x, y: x > y),
+    "ge": _compare(lambda xp, x, y: x >= y),
+    "eq": _compare(lambda xp, x, y: x == y),
+    "ne": _compare(lambda xp, x, y: x != y),
+    "and": _compare(lambda xp, x, y: (x != 0) & (y != 0)),
 }
 
 
@@ -579,113 +750,37 @@ _NUMPY: dict[str, Callable[[Any, Any, Any], Any]] = {
 # The JAX interpreter (forward mode by hand)
 
 
-def _balanced(x: jax.Array, ans: jax.Array, y: jax.Array) -> jax.Array:
-    """d max(x, y) / dx as JAX defines it: 1 where x wins, 1/2 at ties, else 0."""
-    return jnp.where(x == ans, 1.0, 0.0) / jnp.where(y == ans, 2.0, 1.0)
-
-
 def _dual_branches() -> list[Callable[..., tuple[jax.Array, ...]]]:
     """One function per opcode: ``(x, y, z, imm, i, X, p) -> (value, dx, dy, dz)`` on ``[R, N]``
-    (``p`` is ``[R, P]``, ``X`` ``[F, N]``): the value and
-    its partial derivatives with respect to the three operands (the derivative rules of
-    ``jax.lax``, so that the result matches ``jax.jvp`` of the compiled skeleton)."""
-    zero = jnp.zeros_like
+    (``p`` is ``[R, P]``, ``X`` ``[F, N]``): the value and its partial derivatives with respect
+    to the three operands, from :data:`RULES` (zeros where a rule has none)."""
 
-    def u(value, deriv):  # unary: value(x), d/dx(x, value)
+    def branch(rule: _Rule) -> Callable[..., tuple[jax.Array, ...]]:
+        value, partials = rule
+
         def f(x, y, z, imm, i, X, p):
-            v = value(x)
-            return v, deriv(x, v), zero(x), zero(x)
+            v = value(jnp, x, y, z, imm)
+            ds = partials(jnp, x, y, z, imm, v)
+            return v, *(
+                jnp.zeros_like(x) if d is None else jnp.broadcast_to(d, x.shape).astype(x.dtype)
+                for d in ds
+            )
 
         return f
 
-    def b(value, dx, dy):
+    def leaf(value: Callable[..., jax.Array]) -> Callable[..., tuple[jax.Array, ...]]:
         def f(x, y, z, imm, i, X, p):
-            v = value(x, y)
-            return v, dx(x, y, v), dy(x, y, v), zero(x)
+            zero = jnp.zeros_like(x)
+            return value(x, imm, i, X, p), zero, zero, zero
 
         return f
 
-    def cmp(fn):
-        def f(x, y, z, imm, i, X, p):
-            return fn(x, y).astype(x.dtype), zero(x), zero(x), zero(x)
-
-        return f
-
-    def leaf(value):
-        def f(x, y, z, imm, i, X, p):
-            return value(x, imm, i, X, p), zero(x), zero(x), zero(x)
-
-        return f
-
-    def pow_(x, y, z, imm, i, X, p):
-        v = jnp.power(x, y)
-        dx = y * jnp.power(x, y - 1.0)
-        dy = jnp.log(jnp.where(x == 0, 1.0, x)) * v
-        return v, dx, dy, zero(x)
-
-    def powc(x, y, z, imm, i, X, p):
-        v = jnp.power(x, imm)
-        dx = jnp.where(imm == 0, 0.0, imm * jnp.power(x, imm - 1.0))
-        return v, dx, zero(x), zero(x)
-
-    def where(x, y, z, imm, i, X, p):
-        c = x != 0
-        return jnp.where(c, y, z), zero(x), c.astype(x.dtype), (~c).astype(x.dtype)
-
-    def clip(x, y, z, imm, i, X, p):
-        m = jnp.maximum(y, x)
-        v = jnp.minimum(z, m)
-        dm = _balanced(m, v, z)
-        return v, dm * _balanced(x, m, y), dm * _balanced(y, m, x), _balanced(z, v, m)
-
-    one = jnp.ones_like
-    table: dict[str, Callable[..., tuple[jax.Array, ...]]] = {
+    table = {
         "nop": leaf(lambda x, imm, i, X, p: x),
         "var": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(X[i][None, :], x.shape)),
         "param": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(p[:, i][:, None], x.shape)),
         "const": leaf(lambda x, imm, i, X, p: jnp.broadcast_to(imm, x.shape)),
-        "neg": u(jnp.negative, lambda x, v: -one(x)),
-        "add": b(jnp.add, lambda x, y, v: one(x), lambda x, y, v: one(x)),
-        "sub": b(jnp.subtract, lambda x, y, v: one(x), lambda x, y, v: -one(x)),
-        "mul": b(jnp.multiply, lambda x, y, v: y, lambda x, y, v: x),
-        "div": b(jnp.divide, lambda x, y, v: 1.0 / y, lambda x, y, v: -x / (y * y)),
-        "pow": pow_,
-        "powc": powc,
-        "sin": u(jnp.sin, lambda x, v: jnp.cos(x)),
-        "cos": u(jnp.cos, lambda x, v: -jnp.sin(x)),
-        "tan": u(jnp.tan, lambda x, v: 1.0 + v * v),
-        "exp": u(jnp.exp, lambda x, v: v),
-        "log": u(jnp.log, lambda x, v: 1.0 / x),
-        "sqrt": u(jnp.sqrt, lambda x, v: 0.5 / v),
-        "tanh": u(jnp.tanh, lambda x, v: 1.0 - v * v),
-        "sinh": u(jnp.sinh, lambda x, v: jnp.cosh(x)),
-        "cosh": u(jnp.cosh, lambda x, v: jnp.sinh(x)),
-        "arctan": u(jnp.arctan, lambda x, v: 1.0 / (1.0 + x * x)),
-        "arcsin": u(jnp.arcsin, lambda x, v: lax.rsqrt(1.0 - x * x)),
-        "arccos": u(jnp.arccos, lambda x, v: -lax.rsqrt(1.0 - x * x)),
-        "abs": u(jnp.abs, lambda x, v: jnp.where(x >= 0, 1.0, -1.0)),
-        "sign": u(jnp.sign, lambda x, v: zero(x)),
-        "square": u(jnp.square, lambda x, v: 2.0 * x),
-        "arctan2": b(
-            jnp.arctan2,
-            lambda x, y, v: y / (x * x + y * y),
-            lambda x, y, v: -x / (x * x + y * y),
-        ),
-        "maximum": b(
-            jnp.maximum, lambda x, y, v: _balanced(x, v, y), lambda x, y, v: _balanced(y, v, x)
-        ),
-        "minimum": b(
-            jnp.minimum, lambda x, y, v: _balanced(x, v, y), lambda x, y, v: _balanced(y, v, x)
-        ),
-        "where": where,
-        "clip": clip,
-        "lt": cmp(jnp.less),
-        "le": cmp(jnp.less_equal),
-        "gt": cmp(jnp.greater),
-        "ge": cmp(jnp.greater_equal),
-        "eq": cmp(jnp.equal),
-        "ne": cmp(jnp.not_equal),
-        "and": cmp(lambda x, y: jnp.logical_and(x != 0, y != 0)),
+        **{name: branch(rule) for name, rule in RULES.items()},
     }
     return [table[name] for name in OPCODES]
 

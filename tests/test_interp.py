@@ -92,6 +92,18 @@ def _compare(sk, data, p: np.ndarray) -> None:
         jk = ref_jac[k][part.params]
         okk = np.isfinite(jk)
         np.testing.assert_allclose(j[0][okk], jk[okk], rtol=1e-9, atol=1e-12 * scale)
+        # the host twin, for two restarts at once: the same values and derivatives as the JAX
+        # interpreter; without care only where its tangent is finite (then it equals careful)
+        q = np.stack([p[part.params], p[part.params]])
+        for careful in (True, False):
+            with np.errstate(all="ignore"):
+                (hv,), (ht,) = interp.run_numpy(part, rows, q, careful=careful)
+            hv = np.broadcast_to(hv, (2, N))
+            ht = np.zeros((2, len(part.params), N)) if ht is None else ht
+            ht = np.broadcast_to(ht, (2, len(part.params), N))
+            np.testing.assert_allclose(hv[1], v[0], rtol=1e-12, atol=1e-12, equal_nan=True)
+            fin = np.isfinite(ht[1]) if not careful else np.ones(ht[1].shape, bool)
+            np.testing.assert_allclose(ht[1][fin], j[0][fin], rtol=1e-12, equal_nan=True)
         # a parameter the output does not use has a zero column
         unused = np.setdiff1d(np.arange(len(p)), part.params)
         assert np.all(ref_jac[k][unused][np.isfinite(ref_jac[k][unused])] == 0)
