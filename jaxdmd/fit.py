@@ -3,7 +3,9 @@
 A round of the search produces a handful of candidate skeletons (``jaxdmd.skeleton.Skeleton``),
 each a pure JAX function ``fn(*variables, p) -> tuple of n_outputs arrays`` with a trainable
 parameter vector ``p``. :func:`fit_batch` fits every candidate, from several random starting
-points each, in ONE jitted XLA computation, and returns one :class:`FitResult` per candidate.
+points each, and returns one :class:`FitResult` per candidate. Nothing is compiled per
+candidate: the skeletons are lowered to register-machine programs, and the least-squares loop
+runs them on the host (default) or in one jitted interpreter compiled once per process.
 
 Score
 -----
@@ -23,7 +25,7 @@ equation for each state.
 Algorithm (measured against the alternatives in ``benchmarks/fit_speed.py``; see docs/fit.md)
 -----------------------------------------------------------------------------------------------
 XLA compilation, not arithmetic, is the cost of fitting small models on a CPU. The fit is
-therefore a second-order method with a tiny compiled body:
+therefore a second-order method (few iterations) that needs no compile per candidate:
 
 1. *Restarts.* Restart 0 starts from ``p = 1`` (the LLM-SR convention); restart ``i > 0`` from
    ``p_j = s_j * 10**u_j`` with random sign ``s_j`` and ``u_j ~ U(-init_log10_range,
@@ -33,7 +35,8 @@ therefore a second-order method with a tiny compiled body:
 2. *Optional Adam* (``adam_steps > 0``, off by default): the paper's Adam with a cosine-annealed
    learning rate (optax) on the summed NMSE. Measured: it costs compile and run time and does not
    improve on step 3, whose damping is scale invariant (coefficients range from 0.01 to 377).
-3. *Levenberg-Marquardt polish*, written here in a few lines of JAX: Jacobian by forward mode
+3. *Levenberg-Marquardt polish*, written here (in NumPy in :mod:`jaxdmd.lm` for the default
+   host backend, in a few lines of JAX below): Jacobian by forward mode
    (the interpreter's, or ``jvp`` vmapped over the parameter basis), normal equations
    ``(J^T J + lambda D) dp = -J^T r``
    with Marquardt scaling ``D = diag(J^T J)``, one batched Cholesky solve for all candidates and
@@ -49,8 +52,8 @@ therefore a second-order method with a tiny compiled body:
    group depend only on its own parameters, so the combined losses are exact. Eight restarts of
    a five-equation candidate thus act as eight restarts per equation, not eight joint draws.
 
-How the candidates are run (``FitConfig.interpreter``, on by default)
---------------------------------------------------------------------
+How the candidates are run (``FitConfig.interpreter`` and ``backend``)
+-------------------------------------------------------------------
 0. *Exact least squares first* (``linear_shortcut``). A candidate affine in ``p`` is solved
    exactly on the host; so is every *group of outputs* of a nonlinear candidate that is affine in
    its own parameters (outputs sharing no parameter are separate problems). Only the nonlinear
@@ -58,7 +61,14 @@ How the candidates are run (``FitConfig.interpreter``, on by default)
 1. *One interpreter for every candidate.* A skeleton made by ``jaxdmd.skeleton.compile_skeleton``
    is lowered to register-machine programs (:mod:`jaxdmd.interp`): its parameter-free
    subexpressions become host-side feature rows (computed once, in NumPy), and each output gets
-   its own short program whose Jacobian is only as wide as that output's parameters. One jitted
+   its own short program whose Jacobian is only as wide as that output's parameters.
+   *Host backend* (``FitConfig.backend="host"``, the default): :mod:`jaxdmd.lm` runs the same LM
+   per output group in NumPy (:func:`jaxdmd.interp.run_numpy`, the interpreter's NumPy twin with
+   the same derivative rules). Nothing is traced or compiled, so the first round of a process
+   costs what every later round costs; a trial point's Jacobian is computed only if the step is
+   accepted, and stopped restarts leave the arrays (measured in docs/fit.md: a round of 16
+   candidates in 0.3-0.5 s, against 2.5 s for the jitted interpreter's first round).
+   *XLA backend* (``backend="xla"``, and whenever ``adam_steps > 0``): one jitted
    fit (this LM loop around a ``lax.map`` over (candidate, output) slots, a ``lax.switch``
    interpreter with hand-written forward-mode derivatives, restarts as an array dimension) runs
    any batch: programs are data, shapes are padded to buckets (8 candidates per call; parameters,
@@ -97,7 +107,7 @@ import numpy as np
 import optax
 from jax import lax
 
-from jaxdmd import interp
+from jaxdmd import interp, lm
 
 __all__ = ["FitConfig", "FitResult", "Operator", "fit_batch", "nmse"]
 
@@ -148,6 +158,11 @@ class FitConfig:
         interpreter: run lowered skeletons in the one pre-built interpreter
             (:mod:`jaxdmd.interp`) instead of compiling them; False compiles every batch.
         interpreter_chunk: candidates per interpreter call (a fixed shape: one compile).
+        backend: where lowered skeletons are fitted: ``"host"`` (the default) runs the
+            Levenberg-Marquardt loop in NumPy on the host (:mod:`jaxdmd.lm`: nothing is
+            compiled, so a process's first round costs what its later rounds cost); ``"xla"``
+            runs it in the jitted interpreter (compiled once per process). With
+            ``adam_steps > 0`` the fit runs in the jitted interpreter whatever this says.
     """
 
     restarts: int = 8
@@ -168,6 +183,7 @@ class FitConfig:
     compiler_options: tuple[tuple[str, Any], ...] = (("xla_cpu_use_fusion_emitters", False),)
     interpreter: bool = True
     interpreter_chunk: int = 8
+    backend: str = "host"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -672,7 +688,7 @@ def _affine_groups(
     seed: int,
     targets: np.ndarray,
     scale: np.ndarray,
-    operator: Operator | None,
+    band: Any,
     config: FitConfig,
 ) -> list[tuple[list[int], list[int], np.ndarray, np.ndarray]]:
     """The groups of outputs (linked by shared parameters) that are affine in their parameters,
@@ -713,10 +729,7 @@ def _affine_groups(
                 q = probes[:, local] if local else np.zeros((probes.shape[0], 1))
                 out.append(interp.evaluate_numpy(parts[k], list(rows), q, n)[:, 0])
             v = np.stack(out, axis=1)
-            if operator is not None:
-                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
-                v = np.sum(v[..., index] * weight, axis=-1)
-            return v
+            return v if band is None else lm.apply_band(band, v)
 
         fitted = _linear_fit(values, len(cols), seed, targets[outs], scale[outs], config)
         if fitted is not None:
@@ -893,6 +906,8 @@ def fit_batch(
         raise ValueError("weights must be finite and non-negative")
     if config.restarts < 1:
         raise ValueError("config.restarts must be >= 1")
+    if config.backend not in ("host", "xla"):
+        raise ValueError(f"config.backend must be 'host' or 'xla', got {config.backend!r}")
     if operator is not None and (
         operator.index.shape[0] != n or int(operator.index.max(initial=0)) >= n
     ):
@@ -986,16 +1001,23 @@ def fit_batch(
             args = (_on_device(x), tgt, scale, op_index, op_weight, _on_device(p0))
             finish(part, fn(code_j, _on_device(pidx), *args))
 
+    def run_host(indices: list[int]) -> None:
+        for i in indices:
+            solved = {k for outs, *_ in exact.get(i, []) for k in outs}
+            p0 = _initial_params(models[i], key_data, config)
+            p, loss, dep, steps = lm.fit_programs(
+                programs[i].parts, feature_values(i), targets_np, scale_np, p0, config, band,
+                solved,
+            )  # fmt: skip
+            finish([i], (p[None], loss[None], dep[None], steps))
+
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:
 
             def numpy_values(probes: np.ndarray) -> np.ndarray:
                 rows = list(feature_values(i))
                 values = interp.evaluate_numpy(programs[i], rows, probes, n)
-                if operator is None:
-                    return values
-                index, weight = np.asarray(operator.index), np.asarray(operator.weight)
-                return np.sum(values[..., index] * weight, axis=-1)
+                return values if band is None else lm.apply_band(band, values)
 
             return numpy_values
         model = models[i]
@@ -1004,6 +1026,7 @@ def fit_batch(
         )
 
     key_data = np.asarray(jax.random.key_data(key))
+    band = None if operator is None else lm.band_matrix(operator.index, operator.weight)
     if config.linear_shortcut:
         for i in list(models):
             m = models[i]
@@ -1016,12 +1039,14 @@ def fit_batch(
     if config.linear_shortcut:
         for i in lowered:
             exact[i] = _affine_groups(
-                programs[i], feature_values(i), models[i].seed, targets_np, scale_np, operator,
-                config,
+                programs[i], feature_values(i), models[i].seed, targets_np, scale_np, band, config,
             )  # fmt: skip
     if lowered:
         try:
-            run_programs(lowered)
+            if config.backend == "host" and config.adam_steps == 0:
+                run_host(lowered)
+            else:
+                run_programs(lowered)
         except Exception:  # the interpreter failed (a bug): fit these through their functions
             for i in lowered:
                 del programs[i]

@@ -158,6 +158,32 @@ def test_weights_enter_the_nmse(linear_problem) -> None:
     np.testing.assert_allclose(res.params[1:], coef, rtol=1e-6)
 
 
+def test_outputs_sharing_a_nonlinear_parameter_are_fitted_together() -> None:
+    # p[1] enters both outputs, nonlinearly in the first: one least-squares problem of three
+    # parameters, whichever backend runs it (host NumPy or the jitted interpreter)
+    data = _data(5)
+    rng = np.random.default_rng(6)
+    true = np.array([1.5, 0.8, -2.0])
+    clean = np.stack(
+        [true[0] * np.exp(-true[1] * data["x"]), true[1] * data["u"] + true[2] * data["x"]]
+    )
+    targets = clean + 0.002 * rng.standard_normal(clean.shape)
+    sk = _skeleton(
+        "def equation(x, u, p):\n    return p[0] * np.exp(-p[1] * x), p[1] * u + p[2] * x",
+        "coupled",
+    )
+    fits = [
+        fit_batch([sk], data, targets, key=jax.random.key(2), config=FitConfig(backend=b))[0]
+        for b in ("host", "xla")
+    ]
+    for res in fits:
+        assert res.error is None
+        np.testing.assert_allclose(res.params, true, rtol=5e-3)
+    np.testing.assert_allclose(fits[0].losses, fits[1].losses, rtol=1e-8)
+    with pytest.raises(ValueError, match="backend"):
+        fit_batch([sk], data, targets, key=jax.random.key(2), config=FitConfig(backend="gpu"))
+
+
 def test_bad_data_raises() -> None:
     data = _data()
     with pytest.raises(ValueError, match="non-finite"):

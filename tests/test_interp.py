@@ -229,10 +229,30 @@ def test_interpreter_matches_compiled_path(nonlinear_fit) -> None:
     operator = Operator(index, np.full((n, 5), 0.2))
     for op in (None, operator):
         key = jax.random.key(5)
-        fast = fit_batch([sk, other], data, targets, key=key, operator=op)
-        slow = fit_batch(
-            [sk, other], data, targets, key=key, operator=op, config=FitConfig(interpreter=False)
-        )
-        for a, b in zip(fast, slow, strict=True):
-            assert a.error is None and b.error is None
-            np.testing.assert_allclose(a.losses, b.losses, rtol=1e-6, atol=1e-12)
+        host = fit_batch([sk, other], data, targets, key=key, operator=op)
+        for config in (FitConfig(backend="xla"), FitConfig(interpreter=False)):
+            slow = fit_batch([sk, other], data, targets, key=key, operator=op, config=config)
+            for a, b in zip(host, slow, strict=True):
+                assert a.error is None and b.error is None
+                np.testing.assert_allclose(a.losses, b.losses, rtol=1e-6, atol=1e-12)
+                np.testing.assert_allclose(a.restart_losses, b.restart_losses, rtol=1e-6)
+
+
+def test_host_fit_where_a_zero_meets_an_infinite_derivative() -> None:
+    # d sqrt(u)/du is infinite at u = p0 * 0 = 0, and du/dp0 is 0: the chain rule's product is
+    # NaN unless a zero factor wins (as in JAX's symbolic zeros and the JAX interpreter)
+    src = "def f(x, p):\n    return np.sqrt(p[0] * 0) + p[1] * np.exp(p[2] * x)"
+    sk = compile_skeleton(src, variables=VARIABLES, n_outputs=1)
+    program = interp.program_of(sk)
+    assert program is not None
+    (part,) = program.parts
+    rows = program.feature_values([_data()["x"]])
+    q = np.array([[1.0, 2.0, 0.5]])
+    with np.errstate(all="ignore"):
+        _, (careful,) = interp.run_numpy(part, rows, q, careful=True)
+        _, (careless,) = interp.run_numpy(part, rows, q, careful=False)
+    assert np.all(careful[:, 0] == 0) and np.all(np.isnan(careless[:, 0]))
+    x = _data()["x"]
+    (res,) = fit_batch([sk], {"x": x}, 2.0 * np.exp(0.5 * x), key=jax.random.key(0))
+    assert res.error is None
+    np.testing.assert_allclose(res.params[1:], [2.0, 0.5], rtol=1e-6)
