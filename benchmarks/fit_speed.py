@@ -2,17 +2,16 @@
 
 Compares, wall time INCLUDING compilation, each part in a fresh process:
 
-  (a) ``jaxdmd.fit.fit_batch`` on the whole round: exact least squares for what is affine in p,
-      the rest in the one pre-built register-machine interpreter (``jaxdmd.interp``), which is
-      compiled once per process whatever the candidates are. Reported three ways:
-      ``a_seconds``       a cold process (nothing cached: includes tracing and compiling the
-                          interpreter fit),
-      ``a_warm_seconds``  a fresh process with JAX's persistent compilation cache filled by an
-                          earlier process (``--cache-dir``; the interpreter does not depend
-                          on the candidates, so this is what every later process pays),
+  (a) ``jaxdmd.fit.fit_batch`` on the whole round, as the search calls it: exact least squares
+      for what is affine in p, Levenberg-Marquardt for the rest on the lowered programs, run on
+      the host in NumPy (``FitConfig(backend="host")``, the default: nothing is compiled).
+      Reported two ways:
+      ``a_seconds``             a cold process (the first round of a search),
       ``a_next_round_seconds``  a second round in the same process with the candidates renamed
-                          (new sources: nothing candidate-specific is cached), i.e. every round of
-                          a search after its first.
+                                (new sources: nothing candidate-specific is cached).
+  (a') the same with the LM loop in the jitted register-machine interpreter
+      (``FitConfig(backend="xla")``): ``a_xla_seconds`` cold (tracing and compiling the
+      interpreter fit, once per process), ``a_xla_next_round_seconds`` the second round.
   (b) the same candidates jitted and fitted one at a time: ``fit_batch`` per candidate with
       ``FitConfig(interpreter=False)`` (one XLA compile per nonlinear candidate, the same LM and
       exact least squares for the affine ones); a cold process, as new candidates always are,
@@ -25,8 +24,8 @@ derivatives) carry Gaussian noise of 1 % of their range. The candidates are skel
 ones a model writes for this machine: 4 to 15 parameters, some nonlinear in p.
 
 Run:  python benchmarks/fit_speed.py            (prints one JSON line)
-      python benchmarks/fit_speed.py --part a --adam-steps 500   (one part, other settings)
-      python benchmarks/fit_speed.py --part a --cache-dir /tmp/x  (with the persistent cache)
+      python benchmarks/fit_speed.py --part a --restarts 4   (one part, other settings)
+      python benchmarks/fit_speed.py --samples 16000 --skip b  (longer data)
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 
@@ -238,25 +236,22 @@ def skeletons(name: str = "equation") -> list:
 
 
 def part_jax(
-    one_at_a_time: bool, adam_steps: int, polish_steps: int, restarts: int, cache_dir: str = ""
+    one_at_a_time: bool, backend: str, polish_steps: int, restarts: int, samples: int
 ) -> dict:
     import jax
 
-    # imports stay outside every part's timer (part c imports scipy.optimize before its timer);
-    # JAX imports scipy.linalg lazily for its LAPACK kernels, 0.25 s on the first linalg call
-    import scipy.linalg  # noqa: F401
+    # imports stay outside every part's timer (part c imports scipy.optimize before its own)
+    import scipy.linalg
+    import scipy.sparse  # noqa: F401
 
     import jaxdmd  # noqa: F401  (float64)
     from jaxdmd.fit import FitConfig, fit_batch
 
-    if cache_dir:
-        jax.config.update("jax_compilation_cache_dir", cache_dir)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    data, targets = make_data()
+    data, targets = make_data(samples)
     cands = skeletons()
     config = FitConfig(
-        restarts=restarts, adam_steps=adam_steps, polish_steps=polish_steps,
-        interpreter=not one_at_a_time,
+        restarts=restarts, polish_steps=polish_steps, interpreter=not one_at_a_time,
+        backend=backend,
     )  # fmt: skip
     key = jax.random.key(0)
     t0 = time.perf_counter()
@@ -276,12 +271,12 @@ def part_jax(
     return out
 
 
-def part_scipy() -> dict:
+def part_scipy(samples: int) -> dict:
     from scipy.optimize import minimize
 
     from jaxdmd.fit import nmse
 
-    data, targets = make_data()
+    data, targets = make_data(samples)
     t0 = time.perf_counter()
     losses = []
     for src, n_params in CANDIDATES:
@@ -308,54 +303,47 @@ def _run_part(argv: list[str]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--part", choices=["a", "b", "c"], help="run one part in this process")
-    ap.add_argument("--adam-steps", type=int, default=0)
+    ap.add_argument("--part", choices=["a", "x", "b", "c"], help="run one part in this process")
     ap.add_argument("--polish-steps", type=int, default=50)
     ap.add_argument("--restarts", type=int, default=8)
-    ap.add_argument("--cache-dir", default="", help="JAX persistent compilation cache (part a)")
-    ap.add_argument("--skip", default="", help="parts to skip, e.g. 'bc'")
+    ap.add_argument("--samples", type=int, default=1000, help="samples (two recordings)")
+    ap.add_argument("--skip", default="", help="parts to skip, e.g. 'xb'")
     ns = ap.parse_args()
-    common = [
-        "--adam-steps", str(ns.adam_steps), "--polish-steps", str(ns.polish_steps),
-        "--restarts", str(ns.restarts),
-    ]  # fmt: skip
-    if ns.part in ("a", "b"):
-        one = ns.part == "b"
-        args = (one, ns.adam_steps, ns.polish_steps, ns.restarts, ns.cache_dir)
+    common = ["--polish-steps", str(ns.polish_steps), "--restarts", str(ns.restarts)]
+    common += ["--samples", str(ns.samples)]
+    if ns.part in ("a", "x", "b"):
+        backend = "xla" if ns.part == "x" else "host"
+        args = (ns.part == "b", backend, ns.polish_steps, ns.restarts, ns.samples)
         print(json.dumps(part_jax(*args)))
         return
     if ns.part == "c":
-        print(json.dumps(part_scipy()))
+        print(json.dumps(part_scipy(ns.samples)))
         return
-    parts = {p: _run_part(["--part", p, *common]) for p in "abc" if p not in ns.skip}
     report: dict = {
-        "candidates": len(CANDIDATES), "restarts": ns.restarts, "samples": 1000, "equations": 5,
-        "adam_steps": ns.adam_steps, "polish_steps": ns.polish_steps,
+        "candidates": len(CANDIDATES), "restarts": ns.restarts, "samples": ns.samples,
+        "equations": 5, "polish_steps": ns.polish_steps,
         "load_average": [round(x, 2) for x in os.getloadavg()],
     }  # fmt: skip
-    if "a" in parts:
-        with tempfile.TemporaryDirectory(prefix="fit_speed_cache_") as cache:
-            _run_part(["--part", "a", "--cache-dir", cache, *common])  # fills the cache
-            warm = _run_part(["--part", "a", "--cache-dir", cache, *common])
-        report["a_warm_seconds"] = round(warm["seconds"], 3)
-        report["a_next_round_seconds"] = round(parts["a"]["next_round_seconds"], 3)
+    parts = {p: _run_part(["--part", p, *common]) for p in "axbc" if p not in ns.skip}
+    names = {"a": "a", "x": "a_xla", "b": "b", "c": "c"}
     for p, r in parts.items():
-        report[f"{p}_seconds"] = round(r["seconds"], 3)
-        report[f"{p}_mean_nmse"] = float(np.mean(r["losses"]))
-        report[f"{p}_median_nmse"] = float(np.median(r["losses"]))
+        report[f"{names[p]}_seconds"] = round(r["seconds"], 3)
+        if "next_round_seconds" in r:
+            report[f"{names[p]}_next_round_seconds"] = round(r["next_round_seconds"], 3)
+        report[f"{names[p]}_mean_nmse"] = float(np.mean(r["losses"]))
+        report[f"{names[p]}_median_nmse"] = float(np.median(r["losses"]))
     if "a" in parts:
-        report["a_dropped"] = sum(e is not None for e in parts["a"]["errors"])
-        report["a_next_round_mean_nmse"] = float(np.mean(parts["a"]["next_round_losses"]))
-        for p in "bc":
+        a = parts["a"]
+        report["a_dropped"] = sum(e is not None for e in a["errors"])
+        report["a_next_round_mean_nmse"] = float(np.mean(a["next_round_losses"]))
+        for p in "xbc":
             if p in parts:
-                for which, sec in (
-                    ("", parts["a"]["seconds"]),
-                    ("_warm", report["a_warm_seconds"]),
-                    ("_next_round", report["a_next_round_seconds"]),
-                ):
-                    report[f"{p}_over_a{which}"] = round(parts[p]["seconds"] / sec, 2)
-                la, lp = np.array(parts["a"]["losses"]), np.array(parts[p]["losses"])
-                report[f"a_loss_le_{p}"] = int(np.sum(la <= lp * (1 + 1e-6) + 1e-12))
+                report[f"{names[p]}_over_a"] = round(parts[p]["seconds"] / a["seconds"], 2)
+                report[f"{names[p]}_over_a_next_round"] = round(
+                    parts[p]["seconds"] / a["next_round_seconds"], 2
+                )
+                la, lp = np.array(a["losses"]), np.array(parts[p]["losses"])
+                report[f"a_loss_le_{names[p]}"] = int(np.sum(la <= lp * (1 + 1e-6) + 1e-12))
     report["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(report))
 
