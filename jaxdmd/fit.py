@@ -700,24 +700,10 @@ def _affine_groups(
     """
     parts = program.parts
     n = targets.shape[1]
-    group = list(range(len(parts)))
-
-    def root(k: int) -> int:
-        while group[k] != k:
-            k = group[k]
-        return k
-
-    owner: dict[int, int] = {}
-    for k, part in enumerate(parts):
-        for g in part.params.tolist():
-            if g in owner:
-                group[root(k)] = root(owner[g])
-            else:
-                owner[g] = k
+    dep = lm.dependence(parts, max(1, program.n_params))
     found = []
-    for r in sorted({root(k) for k in range(len(parts))}):
-        outs = [k for k in range(len(parts)) if root(k) == r]
-        cols = sorted({g for k in outs for g in parts[k].params.tolist()})
+    for outs in lm.output_groups(dep):
+        cols = [int(j) for j in np.flatnonzero(dep[outs].any(axis=0))]
         if not cols:
             continue
         position = {g: j for j, g in enumerate(cols)}
@@ -768,7 +754,8 @@ def _linear_fit(
     ``pred(p) = b + A p`` if it is affine; affinity is then verified at two random points
     (relative tolerance 1e-9). The weighted least-squares problem
     ``min_p sum_k sum_n scale[k, n]**2 (b + A p - target)[k, n]**2`` (the summed NMSE) is solved
-    with column equilibration and an SVD (minimum-norm where terms are collinear). This is what
+    per group of outputs linked by shared parameters, with column equilibration and an SVD
+    (minimum-norm where terms are collinear). This is what
     Levenberg-Marquardt converges to in one step, without its compile.
     """
     probes = _probes(n_params, seed)
@@ -784,12 +771,16 @@ def _linear_fit(
         size = np.abs(b) + np.tensordot(np.abs(r), np.abs(a), axes=1) + np.abs(v)
         if np.any(np.abs(v - affine) > 1e-9 * (size + 1e-300)):
             return None
-    m = (scale[None] * a).reshape(n_params, -1).T  # [K*N, P]
-    y = (scale * (targets - b)).reshape(-1)
-    norms = np.linalg.norm(m, axis=0)
-    norms = np.where(norms > 0, norms, 1.0)
-    p, *_ = np.linalg.lstsq(m / norms, y, rcond=None)
-    p = p / norms
+    sa, y = scale[None] * a, scale * (targets - b)  # [P, K, N], [K, N]
+    dep = np.any(sa != 0, axis=2).T
+    p = np.zeros(n_params)  # a parameter that changes nothing: 0, the minimum-norm choice
+    for outs in lm.output_groups(dep):  # outputs sharing no parameter: separate problems
+        cols = np.flatnonzero(dep[outs].any(axis=0))
+        if len(cols):
+            m = sa[cols][:, outs].reshape(len(cols), -1).T  # [K_g * N, P_g]
+            norms = np.linalg.norm(m, axis=0)
+            q, *_ = np.linalg.lstsq(m / norms, y[outs].reshape(-1), rcond=None)
+            p[cols] = q / norms
     resid = scale * (b + np.tensordot(p, a, axes=1) - targets)
     losses = np.sum(resid**2, axis=1)
     return _result(n_params, p, losses, losses[None], config)
@@ -816,22 +807,8 @@ def _select(
     best = int(np.argmin(np.sum(loss, axis=1)))
     if not combine:
         return p[best].copy(), loss[best].copy()
-    n_out = loss.shape[1]
-    group = list(range(n_out))  # union-find over outputs sharing a parameter
-
-    def root(k: int) -> int:
-        while group[k] != k:
-            k = group[k]
-        return k
-
-    for j in range(dep.shape[1]):
-        users = np.flatnonzero(dep[:, j])
-        for k in users[1:]:
-            group[root(int(k))] = root(int(users[0]))
-    roots = np.array([root(k) for k in range(n_out)])
     params, losses = p[best].copy(), loss[best].copy()
-    for g in np.unique(roots):
-        outs = roots == g
+    for outs in lm.output_groups(dep):
         r = int(np.argmin(np.sum(loss[:, outs], axis=1)))
         losses[outs] = loss[r, outs]
         cols = np.any(dep[outs], axis=0)

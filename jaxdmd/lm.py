@@ -30,7 +30,7 @@ import numpy as np
 
 from jaxdmd import interp
 
-__all__ = ["apply_band", "band_matrix", "fit_programs"]
+__all__ = ["apply_band", "band_matrix", "dependence", "fit_programs", "output_groups"]
 
 
 def band_matrix(index: Any, weight: Any) -> Any:
@@ -49,27 +49,34 @@ def apply_band(band: Any, x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray((band @ flat.T).T).reshape(x.shape)
 
 
-def _groups(parts: Sequence[interp.Program], skip: set[int]) -> list[list[int]]:
-    """Outputs linked by shared parameters (connected components), each with a parameter."""
-    fitted = [k for k in range(len(parts)) if k not in skip and len(parts[k].params)]
-    root = {k: k for k in fitted}
+def output_groups(dep: np.ndarray) -> list[list[int]]:
+    """The outputs linked by shared parameters (connected components of ``dep [K, P]``: output
+    ``k`` depends on parameter ``j``), in order of their first output; an output with no
+    parameter is a group of its own."""
+    n_out = dep.shape[0]
+    root = list(range(n_out))
 
     def find(k: int) -> int:
         while root[k] != k:
             k = root[k]
         return k
 
-    owner: dict[int, int] = {}
-    for k in fitted:
-        for g in parts[k].params.tolist():
-            if g in owner:
-                root[find(k)] = find(owner[g])
-            else:
-                owner[g] = k
+    for j in range(dep.shape[1]):
+        users = np.flatnonzero(dep[:, j])
+        for k in users[1:]:
+            root[find(int(k))] = find(int(users[0]))
     groups: dict[int, list[int]] = {}
-    for k in fitted:
+    for k in range(n_out):
         groups.setdefault(find(k), []).append(k)
     return list(groups.values())
+
+
+def dependence(parts: Sequence[interp.Program], n_params: int) -> np.ndarray:
+    """``[K, P]``: which parameters each output program reads."""
+    dep = np.zeros((len(parts), n_params), dtype=bool)
+    for k, part in enumerate(parts):
+        dep[k, part.params] = True
+    return dep
 
 
 class _Group:
@@ -211,12 +218,15 @@ def fit_programs(
             if k not in skip and not len(part.params):  # nothing to fit: its loss as it is
                 fixed = _Group(parts, [k], rows, targets, scale, band)
                 loss[:, k] = fixed.evaluate(np.zeros((1, 0)), jacobian=False)[0][0, 0]
-        for outputs in _groups(parts, set(skip)):
+        fitted = dependence(parts, n_p)
+        fitted[list(skip)] = False
+        for outputs in output_groups(fitted):
+            if not fitted[outputs].any():
+                continue
             group = _Group(parts, outputs, rows, targets, scale, band)
             q, group_loss, n = _levenberg_marquardt(group, p[:, group.cols], config)
             p[:, group.cols] = q
             loss[:, outputs] = group_loss
-            for k in outputs:
-                dep[k, parts[k].params] = True
+            dep[outputs] = fitted[outputs]
             steps = max(steps, n)
     return p, loss, dep, steps
