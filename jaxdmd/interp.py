@@ -516,38 +516,12 @@ def evaluate_numpy(
     needed when there are no ``args``.
     """
     p = np.atleast_2d(np.asarray(p, dtype=np.float64))
-    n_batch = p.shape[0]
     if n is None:
         n = np.shape(args[0])[0] if len(args) else 1
-    regs: list[Any] = [None] * program.n_regs
-
-    def operand(kind: int, index: int, value: float) -> Any:
-        if kind == 0:
-            return regs[index] if index < len(regs) else None
-        if kind == 1:
-            return np.asarray(args[index], dtype=np.float64)[None, :]
-        if kind == 2:
-            return p[:, index : index + 1]
-        return np.asarray(value).reshape(1, 1)
-
+    rows = [np.asarray(x, dtype=np.float64) for x in args]
     with np.errstate(all="ignore"):
-        for op, a, b, c, d, imm, kinds, consts in zip(
-            program.ops.tolist(), program.a.tolist(), program.b.tolist(), program.c.tolist(),
-            program.dst.tolist(), program.imm.tolist(), program.kinds.tolist(),
-            program.consts.tolist(), strict=True,
-        ):  # fmt: skip
-            name = OPCODES[op]
-            if name == "var":
-                out = np.asarray(args[a], dtype=np.float64)[None, :]
-            elif name == "param":
-                out = p[:, a : a + 1]
-            elif name == "const":
-                out = np.asarray(imm).reshape(1, 1)
-            else:
-                x, y, z = (operand(*t) for t in zip(kinds, (a, b, c), consts, strict=True))
-                out = RULES[name][0](np, x, y, z, imm)
-            regs[d] = out
-        outs = [np.broadcast_to(regs[r], (n_batch, n)) for r in program.outputs.tolist()]
+        values, _ = run_numpy(program, rows, p, tangents=False)  # type: ignore[arg-type]
+        outs = [np.broadcast_to(v, (p.shape[0], n)) for v in values]
     return np.stack(outs, axis=1).astype(np.float64)
 
 
