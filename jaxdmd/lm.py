@@ -82,7 +82,15 @@ def dependence(parts: Sequence[interp.Program], n_params: int) -> np.ndarray:
 class _Group:
     """The least-squares problem of one group of outputs over its own parameters ``cols``."""
 
-    def __init__(self, parts, outputs, rows, targets, scale, band) -> None:
+    def __init__(
+        self,
+        parts: Sequence[interp.Program],
+        outputs: Sequence[int],
+        rows: np.ndarray,
+        targets: np.ndarray,
+        scale: np.ndarray,
+        band: Any,
+    ) -> None:
         self.cols = sorted({g for k in outputs for g in parts[k].params.tolist()})
         position = {g: j for j, g in enumerate(self.cols)}
         self.terms = [
@@ -125,7 +133,9 @@ class _Group:
             value = apply_band(self.band, value)
         return (value - self.targets[k]) * self.scale[k]
 
-    def _products(self, tangent, r, k, n_b, n_p, n, mask=False) -> tuple[np.ndarray, np.ndarray]:
+    def _products(
+        self, tangent: Any, r: np.ndarray, k: int, n_b: int, n_p: int, n: int, mask: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``J^T J`` and ``J^T r`` of output ``k`` from its tangent (``mask``: non-finite -> 0)."""
         jac = np.broadcast_to(tangent, (n_b, n_p, n))
         if self.band is not None:
