@@ -698,28 +698,16 @@ def _affine_groups(
     the linear shortcut applies to each group on its own; only the other groups are left to the
     Levenberg-Marquardt loop (their slots in the interpreter are empty).
     """
-    parts = program.parts
-    n = targets.shape[1]
-    dep = lm.dependence(parts, max(1, program.n_params))
+    dep = lm.dependence(program.parts, max(1, program.n_params))
     found = []
     for outs in lm.output_groups(dep):
-        cols = [int(j) for j in np.flatnonzero(dep[outs].any(axis=0))]
-        if not cols:
+        if not dep[outs].any():
             continue
-        position = {g: j for j, g in enumerate(cols)}
-
-        def values(probes: np.ndarray, outs=outs, position=position) -> np.ndarray:
-            out = []
-            for k in outs:
-                local = [position[g] for g in parts[k].params.tolist()]
-                q = probes[:, local] if local else np.zeros((probes.shape[0], 1))
-                out.append(interp.evaluate_numpy(parts[k], list(rows), q, n)[:, 0])
-            v = np.stack(out, axis=1)
-            return v if band is None else lm.apply_band(band, v)
-
-        fitted = _linear_fit(values, len(cols), seed, targets[outs], scale[outs], config)
+        group = lm.OutputGroup(program.parts, outs, rows, targets, scale, band)
+        n_p = len(group.cols)
+        fitted = _linear_fit(group.predict, n_p, seed, targets[outs], scale[outs], config)
         if fitted is not None:
-            found.append((outs, cols, fitted.params, fitted.losses))
+            found.append((outs, group.cols, fitted.params, fitted.losses))
     return found
 
 

@@ -30,7 +30,9 @@ import numpy as np
 
 from jaxdmd import interp
 
-__all__ = ["apply_band", "band_matrix", "dependence", "fit_programs", "output_groups"]
+__all__ = [
+    "OutputGroup", "apply_band", "band_matrix", "dependence", "fit_programs", "output_groups",
+]  # fmt: skip
 
 
 def band_matrix(index: Any, weight: Any) -> Any:
@@ -79,8 +81,9 @@ def dependence(parts: Sequence[interp.Program], n_params: int) -> np.ndarray:
     return dep
 
 
-class _Group:
-    """The least-squares problem of one group of outputs over its own parameters ``cols``."""
+class OutputGroup:
+    """The least-squares problem of one group of outputs over its own parameters ``cols`` (the
+    candidate's parameters the group's programs read, in order)."""
 
     def __init__(
         self,
@@ -111,7 +114,7 @@ class _Group:
         for m, (program, local, k) in enumerate(self.terms):
             q_k = q[:, local]
             (value,), (tangent,) = interp.run_numpy(program, self.rows, q_k, jacobian, False)
-            r = self._residual(value, k, n_b, n)
+            r = self._residual(value, k, n_b)
             sq = np.einsum("bn,bn->b", r, r)
             finite = np.isfinite(sq)
             loss[:, m] = np.where(finite, sq, np.inf)
@@ -127,11 +130,22 @@ class _Group:
             jtr[:, local] += g
         return loss, jtj, jtr
 
-    def _residual(self, value: Any, k: int, n_b: int, n: int) -> np.ndarray:
-        value = np.broadcast_to(value, (n_b, n))
-        if self.band is not None:
-            value = apply_band(self.band, value)
-        return (value - self.targets[k]) * self.scale[k]
+    def predict(self, q: np.ndarray) -> np.ndarray:
+        """The group's predictions ``[B, K_g, N]`` at ``q [B, P_g]`` (the operator applied)."""
+        with np.errstate(all="ignore"):
+            values = [
+                interp.run_numpy(program, self.rows, q[:, local], False)[0][0]
+                for program, local, _ in self.terms
+            ]
+            return np.stack([self._prediction(v, q.shape[0]) for v in values], axis=1)
+
+    def _prediction(self, value: Any, n_b: int) -> np.ndarray:
+        """An output's value from :func:`interp.run_numpy` as ``[B, N]``, the operator applied."""
+        value = np.broadcast_to(value, (n_b, self.targets.shape[1]))
+        return value if self.band is None else apply_band(self.band, value)
+
+    def _residual(self, value: Any, k: int, n_b: int) -> np.ndarray:
+        return (self._prediction(value, n_b) - self.targets[k]) * self.scale[k]
 
     def _products(
         self, tangent: Any, r: np.ndarray, k: int, n_b: int, n_p: int, n: int, mask: bool = False
@@ -158,7 +172,7 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return out
 
 
-def _levenberg_marquardt(group: _Group, p0: np.ndarray, config: Any) -> tuple[Any, Any, int]:
+def _levenberg_marquardt(group: OutputGroup, p0: np.ndarray, config: Any) -> tuple[Any, Any, int]:
     """LM from ``p0 [R, P_g]`` (module docstring): parameters, per-output losses, steps."""
     p = p0.copy()
     loss, jtj, jtr = group.evaluate(p, jacobian=True)
@@ -226,14 +240,14 @@ def fit_programs(
     with np.errstate(all="ignore"):
         for k, part in enumerate(parts):
             if k not in skip and not len(part.params):  # nothing to fit: its loss as it is
-                fixed = _Group(parts, [k], rows, targets, scale, band)
+                fixed = OutputGroup(parts, [k], rows, targets, scale, band)
                 loss[:, k] = fixed.evaluate(np.zeros((1, 0)), jacobian=False)[0][0, 0]
         fitted = dependence(parts, n_p)
         fitted[list(skip)] = False
         for outputs in output_groups(fitted):
             if not fitted[outputs].any():
                 continue
-            group = _Group(parts, outputs, rows, targets, scale, band)
+            group = OutputGroup(parts, outputs, rows, targets, scale, band)
             q, group_loss, n = _levenberg_marquardt(group, p[:, group.cols], config)
             p[:, group.cols] = q
             loss[:, outputs] = group_loss
