@@ -707,8 +707,9 @@ def _proposer(args: argparse.Namespace):
     try:
         from jaxdmd.proposers.llm import proposer_from_args
     except ImportError:  # pragma: no cover
-        return _OfflineFactory({"DE": args.subset_de, "AE": args.subset_ae})
-    proposer = proposer_from_args(args)
+        proposer = None
+    else:
+        proposer = proposer_from_args(args)
     if proposer is None:
         return _OfflineFactory({"DE": args.subset_de, "AE": args.subset_ae})
     return _FixedFactory(proposer, getattr(proposer, "name", "llm"))
