@@ -15,7 +15,7 @@ protocol, generator 31, bus-15 fault, 1 % noise of range on the training states)
   bias-compensated least squares as the AE loop's final refit fits (errors in variables
   corrected with noise variances estimated from the data), on the smoothed states and on the
   states estimated with the DE fit above (integral form) as process model, then by maximum
-  likelihood with the states unknown (``jaxdmd.discover.refit_joint``, as ``--ae-joint``).
+  likelihood with the states unknown (``jaxdmd.refine.refit_joint``, as ``--ae-joint``).
 
 Ground truth lives here (benchmarks/), never in jaxdmd/.
 
@@ -120,13 +120,13 @@ def _bias_compensated_ae(
     train, test, source: str, targets: list[str], estimates=None, de=None
 ) -> dict:
     """The true AE structure fitted as the AE loop's final refit fits its equations:
-    ``jaxdmd.discover.refit_bias_compensated`` (bias-compensated least squares on estimated
+    ``jaxdmd.refine.refit_bias_compensated`` (bias-compensated least squares on estimated
     states: ``estimates``, else the smoothed states, their noise estimated from the data); with
-    ``de`` (state equations) then ``jaxdmd.discover.refit_joint`` (maximum likelihood with the
+    ``de`` (state equations) then ``jaxdmd.refine.refit_joint`` (maximum likelihood with the
     states unknown). No truth is used but the structure."""
-    from jaxdmd.discover import refit_bias_compensated, refit_joint, smoothed_states
     from jaxdmd.prompts import Contract, Variable
-    from jaxdmd.run import ae_test_r2
+    from jaxdmd.refine import refit_bias_compensated, refit_joint, smoothed_states
+    from jaxdmd.rollout import algebraic_r2
     from jaxdmd.search import Equations
 
     states = train[0].state_names
@@ -149,7 +149,7 @@ def _bias_compensated_ae(
         n = len(TRUE_AE[y])
         errors[y] = [float(e) for e in np.asarray(refit.params[k : k + n]) / true[k : k + n] - 1]
         k += n
-    return {"equations": errors, "test_r2": ae_test_r2(refit, test), "report": report}
+    return {"equations": errors, "test_r2": algebraic_r2(refit, test), "report": report}
 
 
 def main(argv=None) -> dict:
@@ -166,14 +166,13 @@ def main(argv=None) -> dict:
     import jax.numpy as jnp
 
     from jaxdmd.data import stack_samples
-    from jaxdmd.discover import de_problem
-    from jaxdmd.run import benchmark_recordings, r2
+    from jaxdmd.grid import benchmark_protocol
+    from jaxdmd.problems import de_problem
+    from jaxdmd.rollout import r2
 
     t0 = time.perf_counter()
-    ns = argparse.Namespace(
-        operating_points=args.operating_points, seed=args.seed, noise=args.noise, generator=31
-    )
-    train, test = benchmark_recordings(ns)
+    data = benchmark_protocol((31,), args.operating_points, args.noise, args.seed)
+    train, test = list(data.train[31]), list(data.test[31])
     out: dict = {"settings": vars(args)}
 
     # ---- DE: the true structure, matched fit on the noisy training data (as the run fits),
@@ -259,8 +258,8 @@ def main(argv=None) -> dict:
     out["ae_bias_compensated"] = _bias_compensated_ae(train, test, source, targets)
     # the states estimated by the Kalman smoother whose process model is the DE fitted above in
     # the integral form (as python -m jaxdmd.run --ae-states model does with the discovered DE)
-    from jaxdmd.discover import smoothed_states
     from jaxdmd.estimate import model_smoother
+    from jaxdmd.refine import smoothed_states
 
     noise = [e.noise for e in smoothed_states(train, states)]
     estimates = model_smoother(*de_integral, states, train, noise)

@@ -416,8 +416,8 @@ def fit_oracle(
     import jax
 
     from jaxdmd.data import stack_samples
-    from jaxdmd.discover import de_problem
     from jaxdmd.fit import FitConfig, fit_batch
+    from jaxdmd.problems import de_problem
     from jaxdmd.rollout import Block
     from jaxdmd.search import fit_problem
     from jaxdmd.skeleton import compile_skeleton
@@ -455,29 +455,36 @@ def fit_oracle(
 def discover(
     gen: int, train: Sequence[Any], test: Sequence[Any], args: argparse.Namespace, out: Path
 ) -> tuple[Any, Any, dict[str, Any]]:
-    """``python -m jaxdmd.run``'s discovery on given recordings (checkpointed in ``out``)."""
-    from jaxdmd.run import Progress, build_parser, discover_recordings, write_outputs
+    """``jaxdmd.discover`` with the run's defaults on given recordings (checkpointed in
+    ``out``, where its outputs are written as ``python -m jaxdmd.run`` writes them)."""
+    import dataclasses
 
-    run_args = build_parser().parse_args(
-        [
-            "--generator", str(gen), "--rounds", str(args.rounds), "--seed", str(args.seed),
-            "--operating-points", str(args.operating_points), "--noise", str(args.noise),
-            "--prompts", str(args.prompts), "--samples", str(args.samples),
-            "--islands", str(args.islands),
-            *(["--no-recombine"] if args.no_recombine else []),
-            *(["--integral", str(args.integral)] if args.integral is not None else []),
-        ]
-    )  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)
-    progress = Progress(quiet=args.quiet_rounds)
-    discovery, summary = discover_recordings(
-        run_args, train, test, out, progress, label=f"gen {gen} "
+    import jax
+
+    from jaxdmd.pipeline import DiscoveryConfig
+    from jaxdmd.pipeline import discover as discover_model
+    from jaxdmd.report import Progress
+
+    base = DiscoveryConfig()
+    search = dataclasses.replace(
+        base.search,
+        max_rounds=args.rounds,
+        prompts_per_round=args.prompts,
+        samples_per_prompt=args.samples,
+        n_islands=args.islands,
+        recombine=not args.no_recombine,
     )
-    summary = {"source": {"benchmark": "ieee39-psat-5.1", "generator": gen}, **summary}
-    if discovery.ae is None:  # the state equations are closed without algebraic variables
+    config = dataclasses.replace(base, search=search, integral_window=args.integral)
+    out.mkdir(parents=True, exist_ok=True)
+    result = discover_model(
+        train, test, config, key=jax.random.key(args.seed), checkpoints=out,
+        observer=Progress(quiet=args.quiet_rounds), label=f"gen {gen} ",
+    )  # fmt: skip
+    summary = {"source": {"benchmark": "ieee39-psat-5.1", "generator": gen}, **result.report}
+    if result.ae is None:  # the state equations are closed without algebraic variables
         summary["ae"] = {"rounds": 0, "stop_reason": summary.get("ae_skipped", "")}
-    write_outputs(out, discovery, summary)
-    return discovery.de, discovery.ae, summary
+    result.save(out, summary)
+    return result.de, result.ae, summary
 
 
 def run_generator(
@@ -758,10 +765,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     todo = [g for g in args.generators if not (args.resume and done(g))]
     _log(f"generators {args.generators}; to do {todo}; settings {settings}")
     if todo:
-        from jaxdmd.run import benchmark_protocol
+        from jaxdmd.grid import benchmark_protocol
 
         t0 = time.perf_counter()
-        data = benchmark_protocol(args, todo)
+        data = benchmark_protocol(todo, args.operating_points, args.noise, args.seed)
         data_s = time.perf_counter() - t0
         _log(f"simulated the protocol once for all generators: {data_s:.1f} s")
     for i, gen in enumerate(todo):

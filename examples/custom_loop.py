@@ -15,8 +15,8 @@ import jax
 
 import jaxdmd
 from jaxdmd import search
-from jaxdmd.discover import de_problem
 from jaxdmd.grid import Exciter, Governor, MachineModel, paper_protocol
+from jaxdmd.problems import de_problem
 from jaxdmd.proposers.offline import OfflineProposer
 
 

@@ -18,3 +18,8 @@ jax.config.update("jax_cpu_enable_async_dispatch", False)
 jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
+
+from jaxdmd.data import Dataset  # noqa: E402  (after the configuration above)
+from jaxdmd.pipeline import Discovery, DiscoveryConfig, discover, load  # noqa: E402
+
+__all__ = ["Dataset", "Discovery", "DiscoveryConfig", "__version__", "discover", "load"]

@@ -40,7 +40,8 @@ import numpy as np
 from jaxdmd import lines as ln
 from jaxdmd import search
 from jaxdmd.data import Dataset
-from jaxdmd.discover import de_problem, run_loop
+from jaxdmd.pipeline import run_loop
+from jaxdmd.problems import de_problem
 from jaxdmd.proposers import Sample
 from jaxdmd.proposers.offline import (
     OfflineProposer,
@@ -303,7 +304,7 @@ class DiagnoseConfig:
     refitting the given parameters must cut the held-out error to call it a parameter error.
     ``rounds``: round limit of the extension search (``0``: no extension). ``window``: the
     equations are compared with the data in their integral form over windows of this many
-    seconds (:func:`jaxdmd.discover.integral_operator`); None compares derivatives (then the
+    seconds (:func:`jaxdmd.problems.integral_operator`); None compares derivatives (then the
     recordings need derivatives, estimated or given).
     """
 
@@ -696,7 +697,7 @@ def diagnose(
         key: PRNG key of the extension search.
         config: `DiagnoseConfig`.
         matched: fit predictions smoothed like the derivative estimates (see
-            :func:`jaxdmd.discover.de_problem`); False for exact, given derivatives.
+            :func:`jaxdmd.problems.de_problem`); False for exact, given derivatives.
         on_round: progress callback of the extension search.
     """
     start = time.perf_counter()

@@ -11,9 +11,9 @@ smoother can. That is what this module does:
 - process model: the DE equations, stepped with Heun's rule between samples, the channels that
   are not states (algebraic variables, inputs) taken as measured; an interval that ends at an
   event (fault on, clearing: the sample holds the values after the jump) is stepped with its
-  left end only, as :func:`jaxdmd.discover.integral_operator` integrates it;
+  left end only, as :func:`jaxdmd.problems.integral_operator` integrates it;
 - measurement: every state, white noise of the variance given per state (by default estimated
-  from the generic smoother's residual, :func:`jaxdmd.discover.smoothed_states`);
+  from the generic smoother's residual, :func:`jaxdmd.refine.smoothed_states`);
 - process noise: white, of intensity ``(s_i * scale_i)^2`` per state, where ``scale_i`` is the
   RMS of the estimated derivative of state ``i`` and the factors ``s_i`` are chosen by maximum
   likelihood (the filter's innovations), one state at a time over a grid, two sweeps. The model
@@ -24,7 +24,7 @@ smoother can. That is what this module does:
 Returns the smoothed states and their posterior covariance per sample, which the AE loop's
 bias-compensated refit uses as the noise that remains in its regressors. With AE equations as
 further measurement equations, :meth:`ModelSmoother.log_likelihood` is the likelihood of all
-the data as a differentiable function of the AE parameters (``jaxdmd.discover.refit_joint``).
+the data as a differentiable function of the AE parameters (``jaxdmd.refine.refit_joint``).
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ class ModelSmoother:
     recording (floored at 1e-12 of the state's variance, so that a clean state still gives a
     regular filter). With ``ae`` (a compiled AE skeleton of the ``targets``), the algebraic
     variables are measurements too, through the AE equations, whose parameters and error
-    variances are given to :meth:`log_likelihood` (which :func:`jaxdmd.discover.refit_joint`
+    variances are given to :meth:`log_likelihood` (which :func:`jaxdmd.refine.refit_joint`
     maximises); :meth:`smooth` estimates the states from their own measurements.
     The process-noise factors are chosen per state by maximum likelihood over all recordings
     (:data:`PROCESS_GRID`, coordinate-wise, ``sweeps`` passes) without the AE equations, unless

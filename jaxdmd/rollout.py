@@ -54,11 +54,13 @@ __all__ = [
     "Block",
     "RolloutConfig",
     "RolloutResult",
+    "algebraic_r2",
     "as_block",
     "fault_window",
     "interpolate",
     "metrics",
     "play_in_knots",
+    "r2",
     "rollout",
     "score",
 ]
@@ -639,3 +641,22 @@ def score(
         out["diverged"] = sim.diverged
         out["diverged_at"] = sim.diverged_at
     return out
+
+
+def r2(pred: np.ndarray, target: np.ndarray) -> float:
+    """The coefficient of determination of ``pred`` against ``target``."""
+    ss = float(np.sum((target - pred) ** 2))
+    return 1.0 - ss / float(np.sum((target - target.mean()) ** 2))
+
+
+def algebraic_r2(ae: _EquationsLike, recordings: Sequence[Dataset]) -> dict[str, float]:
+    """R^2 of each algebraic equation on recordings (states and boundary measured, not
+    simulated): how well the AE equations hold on data they were not fitted to."""
+    from jaxdmd.data import stack_samples
+
+    skeleton = ae.skeleton()
+    data = stack_samples(recordings, recordings[0].names)
+    pred = np.asarray(
+        skeleton({k: jnp.asarray(v) for k, v in data.items()}, jnp.asarray(ae.params))
+    )
+    return {t: r2(pred[j], data[t]) for j, t in enumerate(ae.contract.targets)}

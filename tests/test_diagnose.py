@@ -279,7 +279,7 @@ def test_cli_diagnose_writes_the_report(damping_data, tmp_path):
 
 def test_integral_operator_integrates_within_each_recording():
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import integral_operator
+    from jaxdmd.problems import integral_operator
 
     t = np.linspace(0.0, 2.0, 201)
     dxdt = {"x": 3 * np.cos(3 * t)}
@@ -305,7 +305,7 @@ def test_integral_operator_does_not_average_across_an_event():
     integrates the interval that ends at the event by its left end and is exact here.
     """
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import integral_operator
+    from jaxdmd.problems import integral_operator
 
     t = np.round(np.linspace(0.0, 2.0, 201), 10)
     y = np.where(t < 1.0, 1.0, 3.0)  # jumps at the event t = 1.0, which is a sample
@@ -328,8 +328,8 @@ def test_refit_integral_recovers_parameters_across_an_input_step():
     """A first-order state driven by an input that steps at an event, 1 % noise on the state:
     the integral-form refit recovers the rate and the gain, starting from zeros."""
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import refit_integral
     from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.refine import refit_integral
     from jaxdmd.search import Equations
 
     t = np.round(np.linspace(0.0, 10.0, 1001), 10)
@@ -360,8 +360,8 @@ def test_bias_compensated_refit_undoes_the_attenuation_of_a_noisy_state():
     coefficient of x; the bias-compensated refit, with the noise estimated from the data,
     takes it back to 2."""
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import refit_bias_compensated, smoothed_states
     from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.refine import refit_bias_compensated, smoothed_states
     from jaxdmd.search import Equations
 
     t = np.linspace(0.0, 20.0, 2001)

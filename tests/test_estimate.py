@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from jaxdmd.data import Dataset
-from jaxdmd.discover import smoothed_states
 from jaxdmd.estimate import model_smoother
+from jaxdmd.refine import smoothed_states
 from jaxdmd.skeleton import compile_skeleton
 
 MODEL = """
@@ -100,8 +100,8 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     starts from the truth."""
     import dataclasses
 
-    from jaxdmd.discover import refit_joint
     from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.refine import refit_joint
     from jaxdmd.search import Equations
 
     recordings, truth = _recordings(n=2, noise=0.03)
@@ -137,10 +137,9 @@ def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():
     usable estimate: the run's AE regressors fall back to the generic smoother and say so;
     nothing stops. (An equation that merely explodes does not get here: the filter then
     follows the measurements.)"""
-    import argparse
-
+    from jaxdmd.pipeline import DiscoveryConfig, _ae_regressors
     from jaxdmd.prompts import Contract, Variable
-    from jaxdmd.run import Progress, _ae_regressors
+    from jaxdmd.report import Progress
     from jaxdmd.search import Equations
 
     recordings, _ = _recordings(n=2)
@@ -156,7 +155,7 @@ def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():
     )  # fmt: skip
     progress = Progress()
     with progress.console.capture() as captured:  # kept off the terminal
-        estimates = _ae_regressors(argparse.Namespace(ae_states="model"), de, recordings, progress)
+        estimates = _ae_regressors(DiscoveryConfig(), de, recordings, progress)
     assert "failed" in captured.get()
     assert estimates[0].process == {}  # the generic smoother's estimate
     assert np.all(np.isfinite(np.asarray(estimates[0].dataset["a"])))

@@ -18,7 +18,7 @@ from test_llm import SECRET, make_config
 from test_search import hidden_problem
 
 from jaxdmd import search
-from jaxdmd.discover import run_loop
+from jaxdmd.pipeline import run_loop
 from jaxdmd.proposers.llm import LLMProposer, ReplayProposer
 
 CATALOG = ("u", "w", "z")

@@ -12,7 +12,7 @@ import pytest
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import search
-from jaxdmd.discover import run_loop
+from jaxdmd.pipeline import run_loop
 from jaxdmd.prompts import Contract, Example, Variable, parse_variable_requests, render
 from jaxdmd.proposers import Sample
 from jaxdmd.proposers.offline import OfflineProposer, parse_equations, term_pool
@@ -229,7 +229,7 @@ def test_boundary_phasor_is_requested_as_a_pair():
 
 def test_ae_problem_smooths_the_noisy_states_only():
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import ae_problem
+    from jaxdmd.problems import ae_problem
 
     rng = np.random.default_rng(0)
     t = np.linspace(0, 10, 1001)
@@ -254,7 +254,7 @@ def test_ae_problem_smooths_the_noisy_states_only():
 
 def test_noise_weights_follow_the_estimator():
     from jaxdmd.data import Dataset
-    from jaxdmd.discover import de_problem, noise_weights
+    from jaxdmd.problems import de_problem, noise_weights
 
     t = np.linspace(0, 10, 1001)
     rng = np.random.default_rng(1)

@@ -3,6 +3,7 @@ models (PSAT 5.1 and simpler ones) with optional controls, fault simulation with
 paper's experiment (:func:`paper_protocol`). See docs/benchmark-system.md for every number.
 """
 
+from jaxdmd.grid.benchmark import benchmark_protocol
 from jaxdmd.grid.machines import (
     MODEL_STATES,
     STATE_LAYOUT,
@@ -45,6 +46,7 @@ __all__ = [
     "ProtocolData",
     "SimResult",
     "SolverSettings",
+    "benchmark_protocol",
     "canonical_model_name",
     "case39",
     "generator_channels",

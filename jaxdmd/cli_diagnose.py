@@ -1,0 +1,92 @@
+"""``python -m jaxdmd.run diagnose``: what a model gets wrong on a recording, why, and the
+extended model (arguments -> :func:`jaxdmd.diagnose.diagnose` -> report files)."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+
+import jax
+
+from jaxdmd.data import Dataset
+from jaxdmd.report import Progress
+
+
+def load_recordings(paths: Sequence[str]) -> list[Dataset]:
+    return [Dataset.load(p) for p in paths]
+
+
+def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--data", nargs="+", required=True, metavar="FILE", help="recordings to fit and extend on"
+    )
+    parser.add_argument(
+        "--model",
+        required=True,
+        help="a skeleton file (.py, with optional PARAMS and TARGETS) or a built-in model: "
+        "classical, one-axis, two-axis, psat-5.1",
+    )
+    parser.add_argument(
+        "--test-data",
+        nargs="+",
+        metavar="FILE",
+        help="held-out recordings (default: the last --data recording, or the last 30 %% of a "
+        "single one)",
+    )
+    parser.add_argument("--out", default="runs/diagnose", help="output folder")
+    parser.add_argument(
+        "--rounds", type=int, default=8, help="round limit of the extension search (0: none)"
+    )
+    parser.add_argument(
+        "--window",
+        type=float,
+        default=3.0,
+        help="integration window in s of the weak form the equations are compared in "
+        "(0: compare derivatives, estimated from the states)",
+    )
+    parser.add_argument(
+        "--threshold",
+        type=float,
+        default=0.2,
+        help="share of an equation's held-out residual one term must explain to call the "
+        "model structurally wrong",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+
+
+def run_diagnose(args: argparse.Namespace) -> int:
+    from jaxdmd.diagnose import DiagnoseConfig, diagnose, load_model, write_report
+
+    progress = Progress()
+    train = load_recordings(args.data)
+    test = load_recordings(args.test_data) if args.test_data else None
+    first = train[0]
+    model = load_model(args.model, states=first.state_names, channels=first.names)
+    window = args.window if args.window > 0 else None
+    if window is None:
+        train = [ds.with_estimated_derivatives() for ds in train]
+    config = DiagnoseConfig(threshold=args.threshold, rounds=args.rounds, window=window)
+    progress.console.print(
+        f"Diagnosing [bold]{model.name}[/bold] (d/dt of {', '.join(model.targets)}) on "
+        f"{len(train)} recording(s)..."
+    )
+    result = diagnose(
+        train,
+        model,
+        test=test,
+        key=jax.random.key(args.seed),
+        config=config,
+        on_round=lambda s, r: progress.round("extension", s, r),
+    )
+    path = write_report(args.out, result)
+    c = result.cause
+    progress.console.print(f"\n[bold]Cause ({c.kind})[/bold]: {c.summary}")
+    if result.extended is not None:
+        for k, v in result.extended.readable().items():
+            progress.console.print(f"  {k} = {v}")
+    before = result.metrics.get("given", result.metrics["refit"])["nrmse"]
+    after = result.metrics.get("extended", result.metrics["refit"])["nrmse"]
+    progress.console.print(
+        f"held-out error (NRMSE) {before:.3g} -> {after:.3g} ({result.gain:.1f}x); report: {path}"
+    )
+    return 0

@@ -1,0 +1,633 @@
+"""Discovery as a library: ``discover(train, test, config) -> Discovery``.
+
+The paper's pipeline on recordings, in order:
+
+1. the DE loop (:mod:`jaxdmd.search`) finds the state equations and the variables they need
+   (:func:`jaxdmd.problems.de_problem`: estimated derivatives, matched to the estimator);
+2. their parameters are refitted in the integral form (:func:`jaxdmd.refine.refit_integral`);
+3. the states are estimated with the discovered state equations (a Kalman smoother,
+   :func:`jaxdmd.refine.model_states`), and the AE loop finds the algebraic variables the DE loop
+   brought in as functions of those states, the inputs and the boundary
+   (:func:`jaxdmd.problems.ae_problem`);
+4. the AE parameters are refitted for the noise the estimated states keep (bias-compensated least
+   squares), then by maximum likelihood with the states unknown (:func:`jaxdmd.refine.refit_joint`).
+
+Every choice is a field of :class:`DiscoveryConfig` (frozen, documented, defaults here); the
+proposer is a part passed in (default: the built-in offline search). :class:`Discovery` holds the
+equations and the loops' final states, and rolls the model out (:meth:`Discovery.simulate`,
+:meth:`Discovery.score`); :meth:`Discovery.save` and :func:`load` write and read it.
+
+The command line (``python -m jaxdmd.run``) only turns its arguments into a config, shows
+progress and writes files; ``benchmarks/table1.py`` calls :func:`discover` as any user would.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import jax
+import numpy as np
+
+from jaxdmd import search
+from jaxdmd.data import Dataset
+from jaxdmd.estimate import StateEstimate
+from jaxdmd.problems import ae_problem, de_problem
+from jaxdmd.prompts import Contract, Variable
+from jaxdmd.proposers import Proposer
+from jaxdmd.refine import (
+    model_states,
+    refit_bias_compensated,
+    refit_integral,
+    refit_joint,
+    smoothed_states,
+)
+from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
+
+__all__ = [
+    "Discovery",
+    "DiscoveryConfig",
+    "Observer",
+    "OfflineFactory",
+    "ProposerFactory",
+    "discover",
+    "load",
+    "resume_or_init",
+    "run_loop",
+]
+
+
+# ----------------------------------------------------------------------------------------------
+# configuration
+
+
+@dataclass(frozen=True)
+class DiscoveryConfig:
+    """How :func:`discover` turns recordings into a model. Every field has a sentence.
+
+    Attributes:
+        search: the search of each loop (islands, prompts and samples per round, temperatures,
+            round limit, stagnation rules; :class:`jaxdmd.search.SearchConfig`).
+        derivatives: ``"estimated"``: the state derivatives are estimated from the noisy states
+            by the default estimator (:func:`jaxdmd.data.differentiate`) and each prediction is
+            smoothed like the estimate before the comparison (matched fitting); ``"given"``: the
+            recordings' stored derivatives are exact (a simulator's) and fitted as they are.
+        weighted: with estimated derivatives, weight each sample by the inverse of the noise the
+            estimator passes there (generalised least squares; the paper weights all alike).
+        integral_window: fit the state equations in the integral form over windows of this
+            many seconds during the search (increments of the smoothed states instead of
+            derivatives); None fits derivatives.
+        de_gamma: the DE loop's score threshold of stopping and extension; None takes the
+            search's gamma, divided by ten when the DE NMSE is weighted or integral (the true
+            structure's NMSE lies below the paper's 0.01 there and the loop would stop before
+            extension brings in what it lacks).
+        ae_gamma: the same for the AE loop; None takes the search's gamma, divided by ten when
+            the AE regressors are model-estimated states (the true structure's NMSE lies near
+            1e-4 there).
+        refit_window: refit the final state equations' parameters in the integral form over
+            windows of this many seconds (no derivative estimate needed); None keeps the
+            search's fit.
+        algebraic: run the AE loop (close the algebraic variables the DE loop used).
+        ae_states: the AE loop's regressors when the states are noisy: ``"model"`` estimates
+            them with a Kalman smoother whose process model is the discovered state equations;
+            ``"smoothed"`` with the generic derivative estimator's smoother.
+        ae_bias_correction: refit the AE equations by bias-compensated least squares, correcting
+            for the noise the estimated states keep (with estimated derivatives only).
+        ae_joint: with ``ae_states="model"``, refit the AE equations by maximum likelihood with
+            the states unknown (:func:`jaxdmd.refine.refit_joint`).
+        ae_joint_steps: the joint refit's BFGS steps at most.
+    """
+
+    search: SearchConfig = field(default_factory=SearchConfig)
+    derivatives: Literal["estimated", "given"] = "estimated"
+    weighted: bool = True
+    integral_window: float | None = None
+    de_gamma: float | None = None
+    ae_gamma: float | None = None
+    refit_window: float | None = 0.5
+    algebraic: bool = True
+    ae_states: Literal["model", "smoothed"] = "model"
+    ae_bias_correction: bool = True
+    ae_joint: bool = True
+    ae_joint_steps: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.derivatives not in ("estimated", "given"):
+            raise ValueError(
+                f"derivatives must be 'estimated' or 'given', got {self.derivatives!r}"
+            )
+        if self.ae_states not in ("model", "smoothed"):
+            raise ValueError(f"ae_states must be 'model' or 'smoothed', got {self.ae_states!r}")
+        for name in ("integral_window", "refit_window", "de_gamma", "ae_gamma"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be positive or None, got {value}")
+
+    @property
+    def matched(self) -> bool:
+        """Predictions are smoothed like the estimated derivatives (the derivative form)."""
+        return self.derivatives == "estimated" and self.integral_window is None
+
+    def de_search(self) -> SearchConfig:
+        """The DE loop's search configuration (its gamma resolved, see ``de_gamma``)."""
+        if self.de_gamma is not None:
+            return dataclasses.replace(self.search, gamma=self.de_gamma)
+        if self.integral_window or (self.matched and self.weighted):
+            return dataclasses.replace(self.search, gamma=self.search.gamma / 10)
+        return self.search
+
+    def ae_search(self, model_estimated: bool) -> SearchConfig:
+        """The AE loop's search configuration (its gamma resolved, see ``ae_gamma``)."""
+        if self.ae_gamma is not None:
+            return dataclasses.replace(self.search, gamma=self.ae_gamma)
+        if model_estimated:
+            return dataclasses.replace(self.search, gamma=self.search.gamma / 10)
+        return self.search
+
+
+# ----------------------------------------------------------------------------------------------
+# parts passed in: the proposer per loop, and what wants to hear about progress
+
+
+class ProposerFactory(Protocol):
+    """Makes the proposer of one loop from its problem (``loop`` is ``"DE"`` or ``"AE"``)."""
+
+    name: str
+
+    def __call__(self, problem: Problem, loop: str) -> Proposer: ...
+
+
+class OfflineFactory:
+    """The built-in offline search for each loop's problem (it reads that loop's data).
+
+    ``subset_size``: per loop, the largest subset of building blocks the offline proposer's
+    "subset" edit tries (:class:`jaxdmd.proposers.offline.OfflineConfig`); the AE loop's
+    regressors are estimated states and it gains from larger subsets.
+    """
+
+    name = "offline"
+
+    def __init__(self, subset_size: Mapping[str, int] | None = None) -> None:
+        self.subset_size = {"DE": 3, "AE": 4, **dict(subset_size or {})}
+
+    def __call__(self, problem: Problem, loop: str = "DE") -> Proposer:
+        from jaxdmd.proposers.offline import OfflineConfig, OfflineProposer
+
+        config = OfflineConfig()
+        if loop in self.subset_size:
+            config = dataclasses.replace(config, subset_size=self.subset_size[loop])
+        return OfflineProposer.for_problem(problem, config)
+
+
+class _Fixed:
+    """One proposer (a language model) for both loops."""
+
+    def __init__(self, proposer: Proposer) -> None:
+        self.proposer = proposer
+        self.name = str(getattr(proposer, "name", "llm"))
+
+    def __call__(self, problem: Problem, loop: str = "DE") -> Proposer:
+        return self.proposer
+
+    def stats(self) -> dict[str, object]:
+        stats = getattr(self.proposer, "stats", None)
+        return stats.as_dict() if stats is not None else {}
+
+
+class Observer(Protocol):
+    """What :func:`discover` reports while it works (the command line prints it)."""
+
+    def loop_started(self, name: str, state: SearchState) -> None: ...
+
+    def round(self, name: str, state: SearchState, report: RoundReport) -> None: ...
+
+    def message(self, text: str) -> None: ...
+
+
+class _Silent:
+    def loop_started(self, name: str, state: SearchState) -> None:
+        pass
+
+    def round(self, name: str, state: SearchState, report: RoundReport) -> None:
+        pass
+
+    def message(self, text: str) -> None:
+        pass
+
+
+# ----------------------------------------------------------------------------------------------
+# a loop, resumable
+
+
+def run_loop(
+    state: SearchState,
+    proposer: Proposer,
+    *,
+    on_round: Callable[[SearchState, RoundReport], None] | None = None,
+    checkpoint: str | Path | None = None,
+) -> SearchState:
+    """Run rounds until the search ends; write the state after each round if asked."""
+    while not state.done:
+        state, requests = search.prompts(state)
+        samples = proposer.propose(requests)
+        state, report = search.step(state, samples)
+        if checkpoint is not None:
+            search.write_json_atomic(checkpoint, search.state_to_dict(state))
+        if on_round is not None:
+            on_round(state, report)
+    return state
+
+
+def resume_or_init(
+    problem: Problem,
+    contract: Contract,
+    key: jax.Array,
+    config: SearchConfig,
+    checkpoint: str | Path | None,
+) -> SearchState:
+    """The saved state if ``checkpoint`` exists, else a fresh one."""
+    if checkpoint is not None and Path(checkpoint).exists():
+        path = Path(checkpoint)
+        try:
+            data = json.loads(path.read_text())
+            return search.state_from_dict(data, problem, config)
+        except (ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"cannot resume from the checkpoint {path}: {err}") from None
+    return search.init(problem, contract, key, config)
+
+
+# ----------------------------------------------------------------------------------------------
+# the result
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """The discovered differential-algebraic model, the loops' final states and what each step
+    of :func:`discover` did.
+
+    Attributes:
+        de: the state equations (the DE loop's result, parameters refitted).
+        ae: the algebraic equations (None if the AE loop did not run).
+        de_state, ae_state: the loops' final search states (None for a loaded model).
+        report: per step, what was done (``"de"``, ``"ae"``: rounds, refits, state estimates,
+            wall times; ``"ae_skipped"``; ``"llm"``); the JSON-ready part of ``summary.json``.
+    """
+
+    de: Equations
+    ae: Equations | None = None
+    de_state: SearchState | None = None
+    ae_state: SearchState | None = None
+    report: Mapping[str, Any] = field(default_factory=dict)
+
+    def simulate(self, recording: Dataset, mode: Literal["dae", "de"] = "dae"):
+        """Roll the model out on ``recording`` (:func:`jaxdmd.rollout.rollout`): from its first
+        sample, its inputs and boundary played in (``"dae"``; the measured algebraic variables
+        too with ``"de"``). Returns a :class:`jaxdmd.rollout.RolloutResult`."""
+        from jaxdmd.rollout import rollout
+
+        ae = self.ae if mode == "dae" else None
+        return rollout(self.de, recording, ae=ae, mode=mode)
+
+    def score(
+        self, recordings: Sequence[Dataset], mode: Literal["dae", "de"] = "dae"
+    ) -> dict[str, Any]:
+        """Rollout metrics on each recording (:func:`jaxdmd.rollout.score`) and their mean over
+        the recordings: ``{"recordings": [...], "mean": {metric: value}, "n_diverged": k}``."""
+        from jaxdmd.rollout import score
+
+        states = tuple(self.de.contract.targets)
+        scores = [score(self.simulate(ds, mode), ds, states=states) for ds in recordings]
+        keys = scores[0]["full"]["mean"] if scores else {}
+        mean = {k: float(np.mean([s["full"]["mean"][k] for s in scores])) for k in keys}
+        return {
+            "recordings": scores,
+            "mean": mean,
+            "n_diverged": sum(1 for s in scores if s.get("diverged")),
+        }
+
+    def module_source(self) -> str:
+        """The model as a Python module: skeletons and their fitted parameters (``model.py``)."""
+        parts = [
+            '"""Model discovered by jaxdmd: state equations (DE) and algebraic equations (AE)."""',
+            "",
+            "import jax.numpy as jnp  # noqa: F401  (the skeletons may call jnp functions)",
+            "",
+            self.de.source.rstrip(),
+            "",
+            f"DE_PARAMS = {list(self.de.params)!r}",
+            f"DE_TARGETS = {list(self.de.contract.targets)!r}",
+        ]
+        if self.ae is not None:
+            parts += [
+                "",
+                self.ae.source.rstrip(),
+                "",
+                f"AE_PARAMS = {list(self.ae.params)!r}",
+                f"AE_TARGETS = {list(self.ae.contract.targets)!r}",
+            ]
+        return "\n".join(parts) + "\n"
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON-ready summary of the discovery (``summary.json`` less what the caller adds:
+        the data's source, the settings, the total wall time)."""
+        return dict(self.report)
+
+    def save(self, directory: str | Path, summary: Mapping[str, Any] | None = None) -> Path:
+        """Write ``model.py``, ``equations.md``, ``scores.png`` (when the loops' states are
+        known) and ``summary.json`` (``summary``, default :meth:`summary`) into ``directory``."""
+        from jaxdmd import report
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "model.py").write_text(self.module_source())
+        (out / "equations.md").write_text(report.equations_markdown(self))
+        loops = [(n, s) for n, s in (("DE", self.de_state), ("AE", self.ae_state)) if s]
+        if loops:
+            report.plot_scores(out / "scores.png", loops)
+        search.write_json_atomic(
+            out / "summary.json", self.summary() if summary is None else summary
+        )
+        return out
+
+
+def load(path: str | Path) -> Discovery:
+    """A :class:`Discovery` from a run's folder (its ``model.py``) or a ``model.py`` file.
+
+    The module is read as text and its skeletons are checked and compiled like any model answer
+    (nothing in it is executed); ``DE_PARAMS``, ``DE_TARGETS`` (and ``AE_...``) must be literals.
+    The loaded model simulates and scores as the discovered one did; its search states are not
+    kept (``de_state`` and ``ae_state`` are None).
+    """
+    import ast
+
+    from jaxdmd.skeleton import SkeletonError
+
+    path = Path(path)
+    file = path / "model.py" if path.is_dir() else path
+    if not file.exists():
+        raise ValueError(f"no model found: {file} does not exist")
+    text = file.read_text()
+    try:
+        tree = ast.parse(text, filename=str(file))
+    except SyntaxError as err:
+        raise ValueError(f"{file} is not Python: {err}") from None
+    values: dict[str, Any] = {}
+    functions: list[ast.FunctionDef] = []
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef):
+            functions.append(node)
+        elif isinstance(node, ast.Assign) and len(node.targets) == 1:
+            target = node.targets[0]
+            if isinstance(target, ast.Name):
+                try:
+                    values[target.id] = ast.literal_eval(node.value)
+                except ValueError:
+                    raise ValueError(
+                        f"{file}: {target.id} must be a literal (line {node.lineno})"
+                    ) from None
+    for name in ("DE_PARAMS", "DE_TARGETS"):
+        if name not in values:
+            raise ValueError(f"{file} has no {name}: not a model written by jaxdmd")
+    if not functions:
+        raise ValueError(f"{file} defines no function")
+    has_ae = "AE_PARAMS" in values and len(functions) > 1
+
+    def equations(fdef: ast.FunctionDef, loop: str, targets: Sequence[str],
+                  params: Sequence[float], states: Sequence[str]) -> Equations:  # fmt: skip
+        source = ast.get_source_segment(text, fdef) or ""
+        args = [a.arg for a in fdef.args.args[:-1]]
+        state_vars = tuple(Variable(s, "state") for s in states)
+        library = tuple(Variable(a, "algebraic") for a in args if a not in states)
+        contract = Contract(
+            loop="DE" if loop == "DE" else "AE",
+            targets=tuple(targets),
+            states=state_vars,
+            library=library,
+            function_name=fdef.name,
+        )
+        n = len(targets)
+        eq = Equations(contract, source, tuple(float(x) for x in params), (np.nan,) * n, np.nan)
+        try:
+            eq.skeleton()  # checked and compiled now: a bad file fails here, with its reason
+        except SkeletonError as err:
+            raise ValueError(f"{file}: the function {fdef.name!r} is rejected: {err}") from None
+        return eq
+
+    de_targets = tuple(values["DE_TARGETS"])
+    de_args = [a.arg for a in functions[0].args.args[:-1]]
+    states = tuple(a for a in de_args if a in de_targets)
+    de = equations(functions[0], "DE", de_targets, values["DE_PARAMS"], states)
+    ae = None
+    if has_ae:
+        ae = equations(functions[1], "AE", values["AE_TARGETS"], values["AE_PARAMS"], states)
+    return Discovery(de=de, ae=ae, report={"loaded_from": str(file)})
+
+
+# ----------------------------------------------------------------------------------------------
+# discovery
+
+
+def _loop_summary(
+    state: SearchState, eq: Equations, seconds: float, refit: dict[str, object] | None = None
+) -> dict[str, object]:
+    out: dict[str, object] = {
+        "rounds": state.iteration,
+        "stop_reason": state.stop_reason,
+        "best_score_history": list(state.history),
+        "library": [{"name": n, "joined_round": r} for n, r in state.joined],
+        "missing_measurements": list(state.missing),
+        "targets": list(eq.contract.targets),
+        "equations": eq.readable(),
+        "source": eq.source,
+        "params": list(eq.params),
+        "nmse": dict(zip(eq.contract.targets, eq.losses, strict=True)),
+        "score": eq.score,
+        "wall_time_s": seconds,
+    }
+    if refit is not None:  # the parameters above were refitted; nmse/score are the search's
+        out["refit"] = refit
+    return out
+
+
+def _estimate_summary(estimates: Sequence[StateEstimate]) -> dict[str, object]:
+    model = estimates[0].from_model
+    out: dict[str, object] = {
+        "estimate": "model" if model else "smoothed",
+        "noise_variance": [e.noise for e in estimates],
+        "posterior_sd": {
+            s: float(np.sqrt(np.mean(np.concatenate([e.covariance[:, i, i] for e in estimates]))))
+            for i, s in enumerate(estimates[0].states)
+        },
+    }
+    if model:
+        out["process_factor"] = estimates[0].process
+    return out
+
+
+def _factory(proposer: Proposer | ProposerFactory | None) -> ProposerFactory:
+    if proposer is None:
+        return OfflineFactory()
+    if hasattr(proposer, "propose"):
+        return _Fixed(proposer)  # type: ignore[arg-type]
+    return proposer  # type: ignore[return-value]
+
+
+def discover(
+    train: Sequence[Dataset],
+    test: Sequence[Dataset] = (),
+    config: DiscoveryConfig | None = None,
+    proposer: Proposer | ProposerFactory | None = None,
+    *,
+    key: jax.Array | None = None,
+    checkpoints: str | Path | None = None,
+    observer: Observer | None = None,
+    label: str = "",
+) -> Discovery:
+    """Discover the state and algebraic equations of a component from its recordings.
+
+    Args:
+        train: the training recordings (:class:`jaxdmd.data.Dataset`; states, and the channels
+            the equations may use). With ``config.derivatives == "estimated"`` their derivatives
+            are (re-)estimated here by the default estimator.
+        test: held-out recordings; the AE equations' R^2 on them goes into the report.
+        config: :class:`DiscoveryConfig` (default: the paper's pipeline as jaxdmd runs it).
+        proposer: a proposer used by both loops (e.g. a language model), a factory making one
+            per loop, or None for the built-in offline search.
+        key: the PRNG key of the whole discovery (default ``jax.random.key(0)``).
+        checkpoints: a folder where each loop's state is written after every round; a loop
+            found finished there is resumed, not rerun.
+        observer: told about loops and rounds (progress display); default silent.
+        label: prefixed to the loop names shown to the observer.
+
+    Returns:
+        A :class:`Discovery`.
+    """
+    config = config or DiscoveryConfig()
+    observer = observer or _Silent()
+    factory = _factory(proposer)
+    key = jax.random.key(0) if key is None else key
+    train = list(train)
+    if not train:
+        raise ValueError("discover needs at least one training recording")
+    estimated = config.derivatives == "estimated"
+    if estimated:
+        train = [ds.with_estimated_derivatives() for ds in train]
+    weighted = config.matched and config.weighted
+    integral = config.integral_window
+    folder = None if checkpoints is None else Path(checkpoints)
+    de_key, ae_key = jax.random.split(key)
+
+    def loop(
+        name: str, problem: Problem, contract: Contract, key: jax.Array, cfg: SearchConfig,
+        floor: float,
+    ) -> tuple[SearchState, Equations, float]:  # fmt: skip
+        start = time.perf_counter()
+        checkpoint = None if folder is None else folder / f"{name.lower()}_state.json"
+        state = resume_or_init(problem, contract, key, cfg, checkpoint)
+        observer.loop_started(f"{label}{name}", state)
+        state = run_loop(
+            state,
+            factory(problem, name),
+            on_round=lambda s, r: observer.round(f"{label}{name}", s, r),
+            checkpoint=checkpoint,
+        )
+        return state, search.final_equations(state, floor=floor), time.perf_counter() - start
+
+    de_state, de, de_seconds = loop(
+        "DE",
+        *de_problem(
+            train,
+            matched=config.matched,
+            weighted=weighted,
+            integral=integral,
+            smooth=bool(integral),
+        ),
+        de_key,
+        config.de_search(),
+        # NMSEs of the integral form lie far below the derivatives': no absolute floor there
+        floor=0.0 if integral else 1e-4,
+    )
+    refit = None
+    if config.refit_window:
+        de, refit_nmse = refit_integral(
+            de, train, config.refit_window, jax.random.fold_in(de_key, 9)
+        )
+        nmse = dict(zip(de.contract.targets, refit_nmse, strict=True))
+        refit = {"form": "integral", "window_s": config.refit_window, "nmse": nmse}
+    report: dict[str, Any] = {
+        "proposer": factory.name,
+        "de": _loop_summary(de_state, de, de_seconds, refit),
+    }
+
+    ae = ae_state = None
+    ae_seconds = 0.0
+    if not config.algebraic:
+        report["ae_skipped"] = "--skip-ae"
+    elif not any(v.role == "algebraic" for v in de.contract.library):
+        report["ae_skipped"] = "the DE loop used no algebraic variable: there is nothing to close"
+        observer.message(f"AE loop skipped: {report['ae_skipped']}")
+    else:
+        start = time.perf_counter()
+        estimates = _ae_regressors(config, de, train, observer) if estimated else None
+        regressors = train if estimates is None else [e.dataset for e in estimates]
+        states_seconds = time.perf_counter() - start
+        fine = estimates is not None and estimates[0].from_model
+        ae_state, ae, ae_seconds = loop(
+            "AE", *ae_problem(regressors, de.contract), ae_key, config.ae_search(fine),
+            floor=1e-5 if fine else 1e-4,
+        )  # fmt: skip
+        ae_seconds += states_seconds
+        bias_report = joint_report = None
+        if estimates is not None and config.ae_bias_correction:
+            start = time.perf_counter()
+            ae, bias_report = refit_bias_compensated(ae, estimates)
+            ae_seconds += time.perf_counter() - start
+        if fine and config.ae_joint:
+            start = time.perf_counter()
+            observer.message("AE refit: maximum likelihood with the states unknown ...")
+            try:
+                ae, joint_report = refit_joint(
+                    de, ae, train, estimates, max_steps=config.ae_joint_steps
+                )
+            except (ValueError, np.linalg.LinAlgError) as err:
+                joint_report = {"kept": f"the joint refit failed: {err}"}
+            joint_report["seconds"] = time.perf_counter() - start
+            ae_seconds += joint_report["seconds"]
+        summary = _loop_summary(ae_state, ae, ae_seconds)
+        if bias_report is not None:  # "params"/"equations" are then the refitted ones
+            summary["bias_compensated"] = bias_report
+        if estimates is not None:
+            summary["states"] = _estimate_summary(estimates)
+        if joint_report is not None:  # "params"/"equations" are then the refitted ones
+            summary["joint_refit"] = joint_report
+        if test:
+            from jaxdmd.rollout import algebraic_r2
+
+            summary["test_r2"] = algebraic_r2(ae, list(test))
+        report["ae"] = summary
+    stats = getattr(factory, "stats", None)
+    if stats is not None:
+        report["llm"] = stats()
+    report["wall_time_s"] = de_seconds + ae_seconds
+    return Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state, report=report)
+
+
+def _ae_regressors(
+    config: DiscoveryConfig, de: Equations, train: Sequence[Dataset], observer: Observer
+) -> list[StateEstimate]:
+    """The AE loop's regressors: the noisy states replaced by an estimate (``ae_states``); the
+    Kalman smoother falls back to the generic one, with a message, if it fails."""
+    if config.ae_states == "model":
+        try:
+            return model_states(de, train)
+        except (ValueError, np.linalg.LinAlgError) as err:
+            observer.message(
+                f"state estimation with the DE model failed ({err}); "
+                "the AE loop uses the smoothed states"
+            )
+    return smoothed_states(train, de.contract.targets)

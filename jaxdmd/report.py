@@ -1,0 +1,173 @@
+"""What a person reads and looks at: Markdown and plots of a discovery.
+
+- :func:`equations_markdown`: ``equations.md``, the discovered equations with their parameters.
+- :func:`plot_scores`: the paper's Fig. 3, the best score per round of each loop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # annotations only: report is imported by pipeline, not the reverse
+    from jaxdmd.pipeline import Discovery
+    from jaxdmd.search import RoundReport, SearchState
+
+
+def equations_markdown(discovery: Discovery) -> str:
+    """``equations.md``: the state equations, then the algebraic ones."""
+    lines = ["# Discovered model", "", "## State equations (DE loop)", ""]
+    lines += [f"    {k} = {v}" for k, v in discovery.de.readable().items()]
+    if discovery.ae is not None:
+        lines += ["", "## Algebraic equations (AE loop)", ""]
+        lines += [f"    {k} = {v}" for k, v in discovery.ae.readable().items()]
+    return "\n".join(lines) + "\n"
+
+
+def plot_scores(path: Path, loops: Sequence[tuple[str, SearchState]]) -> None:
+    """The paper's Fig. 3: best score per round of each loop, extensions marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(loops), figsize=(5.5 * len(loops), 3.6), squeeze=False)
+    for ax, (name, state) in zip(axes[0], loops, strict=True):
+        history = np.asarray(state.history)
+        ax.plot(np.arange(len(history)), -history, marker="o", lw=1.5)
+        ax.set_yscale("log")
+        ax.set_xlabel("round")
+        ax.set_ylabel("-s* (mean NMSE)")
+        ax.set_title(f"{name} loop")
+        ax.axhline(state.config.gamma, color="grey", ls=":", lw=1, label="gamma")
+        joined: dict[int, list[str]] = {}
+        for var, rnd in state.joined:
+            if rnd > 0:
+                joined.setdefault(rnd, []).append(var)
+        for rnd, names in joined.items():
+            ax.axvline(rnd, color="green", ls="--", lw=0.8)
+            ax.text(
+                rnd + 0.15,
+                0.97,
+                "+ " + ", ".join(names),
+                transform=ax.get_xaxis_transform(),
+                rotation=90,
+                va="top",
+                ha="left",
+                fontsize=8,
+                color="green",
+            )
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+class Progress:
+    """One line per round on the terminal (rich): a :class:`jaxdmd.pipeline.Observer`."""
+
+    def __init__(self, quiet: bool = False):
+        import time
+
+        from rich.console import Console
+
+        self.console = Console(stderr=True, quiet=quiet, highlight=False)
+        self._clock = time.perf_counter
+        self.start = self._clock()
+
+    def message(self, text: str) -> None:
+        self.console.print(text)
+
+    def loop_started(self, name: str, state: SearchState) -> None:
+        lib = ", ".join(state.contract.arguments)
+        self.console.print(
+            f"[bold]{name} loop[/bold]: targets {', '.join(state.contract.targets)}; "
+            f"arguments {lib}; seed score {state.history[0]:.4g}"
+        )
+
+    def round(self, name: str, state: SearchState, report: RoundReport) -> None:
+        dropped = sum(n for _, n in report.dropped)
+        line = (
+            f"  {name} round {report.round:2d}  best {report.best_score:10.4g}  "
+            f"valid {report.n_valid:2d}/{report.n_samples:2d} (dropped {dropped})  "
+            f"{self._clock() - self.start:6.1f}s"
+        )
+        if report.joined:
+            line += f"  [green]+ {', '.join(report.joined)}[/green]"
+        if report.missing:
+            line += f"  [yellow]not measured: {', '.join(report.missing)}[/yellow]"
+        if report.done:
+            line += f"  [bold]done: {report.stop_reason}[/bold]"
+        self.console.print(line)
+
+
+def rollout_summary(scores: Sequence[dict]) -> dict:
+    """The mean over recordings of :func:`jaxdmd.rollout.score` results: per state and over
+    states (MAPE, R^2, NRMSE), and how many rollouts diverged."""
+    from jaxdmd.rollout import METRICS
+
+    if not scores:
+        return {}
+    states = list(scores[0]["full"]["per_state"])
+
+    def mean(values: Sequence[float]) -> float:
+        return float(np.mean(values))
+
+    return {
+        "mean": {k: mean([s["full"]["mean"][k] for s in scores]) for k in METRICS},
+        "per_state": {
+            st: {k: mean([s["full"]["per_state"][st][k] for s in scores]) for k in METRICS}
+            for st in states
+        },
+        "n_recordings": len(scores),
+        "n_diverged": sum(1 for s in scores if s.get("diverged")),
+    }
+
+
+def rollout_table(test: dict) -> str:
+    """Held-out rollout metrics as a small Markdown table (one row per mode and state)."""
+    lines = ["| rollout | state | MAPE [%] | R^2 | NRMSE |", "|---|---|---|---|---|"]
+    for mode, label in (("de", "DE (algebraic played in)"), ("dae", "DAE (closed)")):
+        if mode not in test:
+            continue
+        row = test[mode]
+        for st, m in [*row["per_state"].items(), ("mean", row["mean"])]:
+            lines.append(f"| {label} | {st} | {m['mape']:.4g} | {m['r2']:.5g} | {m['nrmse']:.3g} |")
+        if row["n_diverged"]:
+            lines.append(f"| {label} | diverged | {row['n_diverged']}/{row['n_recordings']} | | |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_trajectories(path: Path, recording, simulations: dict) -> None:
+    """Measured against simulated states of one held-out recording (``trajectories.png``):
+    ``simulations`` maps a label (e.g. "DE", "DAE") to a :class:`jaxdmd.rollout.RolloutResult`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    first = next(iter(simulations.values()))
+    states = list(first.states)
+    t = np.asarray(recording.t)
+    fig, axes = plt.subplots(len(states), 1, figsize=(9, 1.9 * len(states) + 0.6), sharex=True)
+    axes = np.atleast_1d(axes)
+    styles = {"DE": ("tab:orange", "--"), "DAE": ("tab:blue", "-")}
+    for ax, s in zip(axes, states, strict=True):
+        meas = np.asarray(recording[s])
+        ax.plot(t, meas, color="black", lw=2.2, alpha=0.35, label="measured")
+        for label, sim in simulations.items():
+            color, ls = styles.get(label, (None, "-"))
+            ax.plot(t, sim[s], color=color, ls=ls, lw=1.1, label=f"simulated ({label})")
+        pad = 0.5 * float(np.ptp(meas)) + 1e-9
+        ax.set_ylim(float(meas.min()) - pad, float(meas.max()) + pad)
+        ax.set_ylabel(s)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[0].set_title(f"{recording.label or 'held-out recording'}: measured and simulated")
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
