@@ -1,7 +1,12 @@
-"""What a person reads and looks at: Markdown and plots of a discovery.
+"""What a person reads and looks at: Markdown and plots of a discovery and of a diagnosis.
 
 - :func:`equations_markdown`: ``equations.md``, the discovered equations with their parameters.
 - :func:`plot_scores`: the paper's Fig. 3, the best score per round of each loop.
+- :func:`write_report` (with :func:`report_markdown`): the discrepancy report of
+  :func:`jaxdmd.diagnose.diagnose`: ``report.md``, ``trajectories.png``, ``evidence.png``,
+  ``diagnosis.json`` and, when the model was extended, ``extended_model.py``.
+
+matplotlib is imported only when a plot is drawn.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # annotations only: report is imported by pipeline, not the reverse
+    from jaxdmd.diagnose import Diagnosis
     from jaxdmd.pipeline import Discovery
     from jaxdmd.search import RoundReport, SearchState
 
@@ -171,3 +177,164 @@ def plot_trajectories(path: Path, recording, simulations: dict) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------------
+# the discrepancy report (jaxdmd.diagnose)
+# ------------------------------------------------------------------------------------------------
+
+
+def _plot_diagnosis_trajectories(path: Path, d: Diagnosis) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxdmd.rollout import fault_window
+
+    states = d.model.targets
+    ds = d.test[0]
+    t = np.asarray(ds.t)
+    fig, axes = plt.subplots(2, len(states), figsize=(3.6 * len(states), 5.2), squeeze=False)
+    window = fault_window(ds)
+    labels = {
+        "given": "model (given parameters)",
+        "refit": "model (refitted)",
+        "extended": "extended",
+    }
+    colors = {"given": "tab:red", "refit": "tab:orange", "extended": "tab:green"}
+    for i, s in enumerate(states):
+        top, bottom = axes[0, i], axes[1, i]
+        top.plot(t, ds[s], color="black", lw=1.2, label="measured")
+        for name, sims in d.rollouts.items():
+            top.plot(t, sims[0][s], color=colors[name], lw=0.9, ls="--", label=labels[name])
+            bottom.plot(t, sims[0][s] - np.asarray(ds[s]), color=colors[name], lw=0.9)
+        for ax in (top, bottom):
+            if window is not None:
+                ax.axvspan(*window, color="0.9", zorder=0)
+        top.set_title(s)
+        bottom.set_xlabel("t [s]")
+        bottom.axhline(0, color="0.5", lw=0.5)
+    axes[0, 0].legend(fontsize=7)
+    axes[1, 0].set_ylabel("simulated - measured")
+    fig.suptitle(f"held-out: {ds.label or 'recording 1'} (grey: fault window)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_evidence(path: Path, d: Diagnosis) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    eqs = list(d.candidates)
+    fig, axes = plt.subplots(1, len(eqs), figsize=(3.4 * len(eqs), 3.4), squeeze=False)
+    for ax, eq in zip(axes[0], eqs, strict=True):
+        cands = d.candidates[eq][:6][::-1]
+        colors = ["tab:red" if c.new_variables else "tab:blue" for c in cands]
+        ax.barh([c.term[:28] for c in cands], [max(c.explained, 0) for c in cands], color=colors)
+        ax.set_xlim(0, 1)
+        ax.set_title(f"d{eq}/dt", fontsize=9)
+        ax.axvline(0.2, color="0.5", lw=0.6, ls=":")
+        ax.tick_params(labelsize=7)
+    axes[0, 0].set_xlabel("share of held-out residual explained\n(red: a variable the model lacks)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(x: float | None) -> str:
+    if x is None:
+        return "-"
+    return f"{x:.3g}" if np.isfinite(x) else str(x)
+
+
+def report_markdown(d: Diagnosis) -> str:
+    """``report.md``: the cause, the evidence, the errors, the extension and the gain."""
+    states = d.model.targets
+    out = [f"# Diagnosis of `{d.model.name}`", ""]
+    out += [f"**Cause ({d.cause.kind})**: {d.cause.summary}.", ""]
+    for c in d.also:
+        out.append(f"Also: d{c.equation}/dt, {c.term} explains {c.explained:.0%} of its residual.")
+    out += ["", f"Held-out data: {d.held_out}.", ""]
+    out += ["## What the simulation gets wrong", "", "![trajectories](trajectories.png)", ""]
+    out += [
+        "RMS error over the range of each state, given model on the first held-out recording:",
+        "",
+        "| state | whole | before fault | fault window | after fault | worst | drifts |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in states:
+        e = d.errors[s]
+        out.append(
+            f"| {s} | {_fmt(e['whole'])} | {_fmt(e.get('before fault'))} | "
+            f"{_fmt(e.get('fault window'))} | {_fmt(e.get('after fault'))} | {e['worst']} | "
+            f"{'yes' if e['drift'] else 'no'} |"
+        )
+    out += ["", "## Evidence", "", "![evidence](evidence.png)", ""]
+    out += [
+        "Fit of each state equation on the training data (NMSE of "
+        + (
+            f"the increments over {d.window:g} s windows, the integral form):"
+            if d.window
+            else "the derivatives):"
+        ),
+        "",
+        "| equation | " + " | ".join(d.nmse) + " |",
+        "|---|" + "---|" * len(d.nmse),
+    ]
+    for s in states:
+        out.append(f"| d{s}/dt | " + " | ".join(_fmt(d.nmse[k].get(s)) for k in d.nmse) + " |")
+    out += [
+        "",
+        "Best single terms per equation (share of the residual they remove on held-out folds):",
+        "",
+    ]
+    for eq, cands in d.candidates.items():
+        shown = ", ".join(f"{c.term} {c.explained:.0%}" for c in cands[:4])
+        out.append(f"- d{eq}/dt: {shown}")
+    out += ["", "## Held-out error before and after", ""]
+    cols = list(d.metrics)
+    out += ["| metric | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for k in ("nrmse", "mape", "r2"):
+        out.append(f"| {k} | " + " | ".join(_fmt(d.metrics[c][k]) for c in cols) + " |")
+    out += ["", f"Error ratio before / after: **{d.gain:.1f}x**.", ""]
+    out += ["## Models", ""]
+    for name, eq in (("given", d.given), ("refit", d.refit), ("extended", d.extended)):
+        if eq is None:
+            continue
+        out += [f"{name}:", "", "```"]
+        out += [f"{k} = {v}" for k, v in eq.readable().items()]
+        out += ["```", ""]
+    if d.extended is not None:
+        out.append(
+            f"Extension: {d.extension_rounds} rounds of the search seeded with the model"
+            + (f"; joined: {', '.join(d.joined)}" if d.joined else "")
+            + "."
+        )
+    out.append(f"\nWall time {d.wall_time_s:.1f} s.")
+    return "\n".join(out) + "\n"
+
+
+def write_report(out: str | Path, d: Diagnosis) -> Path:
+    """Write ``report.md``, ``trajectories.png``, ``evidence.png``, ``diagnosis.json`` and, when
+    the model was extended, ``extended_model.py``; returns the report's path."""
+    from jaxdmd import search
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _plot_diagnosis_trajectories(out / "trajectories.png", d)
+    _plot_evidence(out / "evidence.png", d)
+    search.write_json_atomic(out / "diagnosis.json", d.to_dict())
+    if d.extended is not None:
+        e = d.extended
+        (out / "extended_model.py").write_text(
+            '"""Model extended by jaxdmd diagnose."""\n\nimport jax.numpy as jnp  # noqa: F401\n\n'
+            f"{e.source.rstrip()}\n\nPARAMS = {list(e.params)!r}\n"
+            f"TARGETS = {list(e.contract.targets)!r}\n"
+        )
+    path = out / "report.md"
+    path.write_text(report_markdown(d))
+    return path
