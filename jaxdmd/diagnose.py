@@ -331,7 +331,7 @@ class Diagnosis:
     candidates: dict[str, tuple[Candidate, ...]]  # equation -> best terms, best first
     nmse: dict[str, dict[str, float]]  # "given" / "refit" / "extended" -> equation -> NMSE
     metrics: dict[str, dict[str, Any]]  # "given" / "refit" / "extended" -> held-out metrics
-    errors: dict[str, dict[str, Any]]  # state -> where and when the given model is wrong
+    errors: dict[str, dict[str, Any]]  # state -> where and when the model is wrong (`errors_of`)
     given: Equations | None
     refit: Equations
     extended: Equations | None
@@ -343,6 +343,11 @@ class Diagnosis:
     joined: tuple[str, ...] = ()
     wall_time_s: float = 0.0
     window: float | None = None  # s, the integral form's window (None: derivatives)
+
+    @property
+    def errors_of(self) -> str:
+        """Which model `errors` were measured on: ``given`` (its own parameters) or ``refit``."""
+        return "given" if self.given is not None else "refit"
 
     @property
     def gain(self) -> float:
@@ -372,6 +377,7 @@ class Diagnosis:
             "also": [c.to_dict() for c in self.also],
             "candidates": {k: [c.to_dict() for c in v] for k, v in self.candidates.items()},
             "errors": self.errors,
+            "errors_of": self.errors_of,
             "nmse": self.nmse,
             "metrics": self.metrics,
             "gain": self.gain,
@@ -721,13 +727,13 @@ def diagnose(
     k_init, k_search = jax.random.split(key)
     state = search.init(problem, contract, k_init, cfg, seed=model.source)
     refit = _fitted(state)
+    nmse = {"refit": _nmse(problem, model, refit.params)}
     given = None
     if model.params is not None:
-        n = model.skeleton().n_params
-        given = Equations(contract, refit.source, tuple(model.params[:n]), (), float("nan"))
-    nmse = {"refit": _nmse(problem, model, refit.params)}
-    if given is not None:
-        nmse["given"] = _nmse(problem, model, given.params)
+        params = tuple(model.params[: model.skeleton().n_params])
+        nmse["given"] = _nmse(problem, model, params)
+        losses = tuple(nmse["given"][t] for t in contract.targets)
+        given = Equations(contract, refit.source, params, losses, -float(np.mean(losses)))
 
     # 1. what the simulation gets wrong
     runs: dict[str, list[RolloutResult]] = {}

@@ -199,7 +199,7 @@ def _plot_diagnosis_trajectories(path: Path, d: Diagnosis) -> None:
     window = fault_window(ds)
     labels = {
         "given": "model (given parameters)",
-        "refit": "model (refitted)",
+        "refit": "model (refitted parameters)",
         "extended": "extended",
     }
     colors = {"given": "tab:red", "refit": "tab:orange", "extended": "tab:green"}
@@ -251,17 +251,41 @@ def _fmt(x: float | None) -> str:
     return f"{x:.3g}" if np.isfinite(x) else str(x)
 
 
+_COLUMNS = {"given": "given parameters", "refit": "refitted parameters", "extended": "extended"}
+"""The report's name for each result of a diagnosis (the keys of its ``nmse``, ``metrics``)."""
+
+
+def _columns(results: dict[str, object]) -> list[str]:
+    """The keys of ``results`` in the report's order: given, refitted, extended."""
+    return [k for k in _COLUMNS if k in results]
+
+
 def report_markdown(d: Diagnosis) -> str:
-    """``report.md``: the cause, the evidence, the errors, the extension and the gain."""
+    """``report.md``: the cause, the evidence, the errors, the extension and the gain.
+
+    Every table and model says whether it used the parameters the model came with (``given``)
+    or parameters refitted on the training data; a model without parameters is only refitted.
+    """
     states = d.model.targets
     out = [f"# Diagnosis of `{d.model.name}`", ""]
+    out += [
+        "Parameters: "
+        + (
+            "given with the model, and refitted on the training data for comparison."
+            if d.given is not None
+            else "no parameters given with the model; they are refitted on the training data."
+        ),
+        "",
+    ]
     out += [f"**Cause ({d.cause.kind})**: {d.cause.summary}.", ""]
     for c in d.also:
         out.append(f"Also: d{c.equation}/dt, {c.term} explains {c.explained:.0%} of its residual.")
     out += ["", f"Held-out data: {d.held_out}.", ""]
     out += ["## What the simulation gets wrong", "", "![trajectories](trajectories.png)", ""]
+    errors_of = "its given parameters" if d.errors_of == "given" else "refitted parameters"
     out += [
-        "RMS error over the range of each state, given model on the first held-out recording:",
+        f"RMS error over the range of each state, the model with {errors_of} on the first "
+        "held-out recording:",
         "",
         "| state | whole | before fault | fault window | after fault | worst | drifts |",
         "|---|---|---|---|---|---|---|",
@@ -274,6 +298,7 @@ def report_markdown(d: Diagnosis) -> str:
             f"{'yes' if e['drift'] else 'no'} |"
         )
     out += ["", "## Evidence", "", "![evidence](evidence.png)", ""]
+    fits = _columns(d.nmse)
     out += [
         "Fit of each state equation on the training data (NMSE of "
         + (
@@ -282,11 +307,11 @@ def report_markdown(d: Diagnosis) -> str:
             else "the derivatives):"
         ),
         "",
-        "| equation | " + " | ".join(d.nmse) + " |",
-        "|---|" + "---|" * len(d.nmse),
+        "| equation | " + " | ".join(_COLUMNS[k] for k in fits) + " |",
+        "|---|" + "---|" * len(fits),
     ]
     for s in states:
-        out.append(f"| d{s}/dt | " + " | ".join(_fmt(d.nmse[k].get(s)) for k in d.nmse) + " |")
+        out.append(f"| d{s}/dt | " + " | ".join(_fmt(d.nmse[k].get(s)) for k in fits) + " |")
     out += [
         "",
         "Best single terms per equation (share of the residual they remove on held-out folds):",
@@ -296,16 +321,23 @@ def report_markdown(d: Diagnosis) -> str:
         shown = ", ".join(f"{c.term} {c.explained:.0%}" for c in cands[:4])
         out.append(f"- d{eq}/dt: {shown}")
     out += ["", "## Held-out error before and after", ""]
-    cols = list(d.metrics)
-    out += ["| metric | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    cols = _columns(d.metrics)
+    out += [
+        "| metric | " + " | ".join(_COLUMNS[c] for c in cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
     for k in ("nrmse", "mape", "r2"):
         out.append(f"| {k} | " + " | ".join(_fmt(d.metrics[c][k]) for c in cols) + " |")
-    out += ["", f"Error ratio before / after: **{d.gain:.1f}x**.", ""]
+    before = _COLUMNS["given" if "given" in d.metrics else "refit"]
+    after = _COLUMNS["extended" if "extended" in d.metrics else "refit"]
+    out.append("")
+    if before != after:
+        out += [f"Error ratio before ({before}) / after ({after}): **{d.gain:.1f}x**.", ""]
     out += ["## Models", ""]
     for name, eq in (("given", d.given), ("refit", d.refit), ("extended", d.extended)):
         if eq is None:
             continue
-        out += [f"{name}:", "", "```"]
+        out += [f"{_COLUMNS[name]}:", "", "```"]
         out += [f"{k} = {v}" for k, v in eq.readable().items()]
         out += ["```", ""]
     if d.extended is not None:

@@ -277,6 +277,48 @@ def test_cli_diagnose_writes_the_report(damping_data, tmp_path):
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.parametrize("given", [True, False], ids=["params-given", "params-refitted"])
+def test_cli_diagnose_reports_given_or_refitted_parameters_truthfully(
+    damping_data, tmp_path, capsys, given
+):
+    """A model file with PARAMS is simulated with them (and refitted); one without is refitted
+    only. Either way the report is written and says which parameters each result used."""
+    from jaxdmd.run import main
+
+    truth, train, test = damping_data
+    M, D = machine(truth, "M"), machine(truth, "D")
+    paths = [str(ds.save(tmp_path / f"rec{i}.npz")) for i, ds in enumerate([*train, *test])]
+    text = (
+        "def equation(omega, P_m, P_e, p):\n"
+        "    return p[0] * (omega - 1), p[1] * P_m + p[2] * P_e + p[3] * (omega - 1)\n"
+        "TARGETS = ['delta', 'omega']\n"
+    )
+    if given:
+        text += f"PARAMS = {[2 * np.pi * 60, 1.3 / M, -1.3 / M, -0.5 * D / M]!r}\n"
+    model = tmp_path / "swing.py"
+    model.write_text(text)
+    out = tmp_path / "out"
+    args = ["diagnose", "--data", *paths[:-1], "--test-data", paths[-1], "--model", str(model)]
+    code = main([*args, "--out", str(out), "--rounds", "0"])
+    assert code == 0, capsys.readouterr().err[-2000:]
+    saved = json.loads((out / "diagnosis.json").read_text())
+    report = (out / "report.md").read_text()
+    assert saved["model"]["params_given"] is given
+    assert (saved["models"]["given"] is not None) is given
+    assert saved["errors_of"] == ("given" if given else "refit")
+    assert (out / "trajectories.png").stat().st_size > 10_000
+    if given:
+        assert saved["models"]["given"]["params"][1] == pytest.approx(1.3 / M)
+        assert set(saved["models"]["given"]["nmse"]) == {"delta", "omega"}
+        assert set(saved["metrics"]) == {"given", "refit"}
+        assert "given parameters" in report and "refitted parameters" in report
+        assert "the model with its given parameters on the first held-out" in report
+    else:
+        assert set(saved["metrics"]) == {"refit"}
+        assert "given" not in report.replace("no parameters given", "")
+        assert "the model with refitted parameters on the first held-out" in report
+
+
 def test_integral_operator_integrates_within_each_recording():
     from jaxdmd.data import Dataset
     from jaxdmd.problems import integral_operator
