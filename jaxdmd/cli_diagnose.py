@@ -55,7 +55,8 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_diagnose(args: argparse.Namespace) -> int:
-    from jaxdmd.diagnose import DiagnoseConfig, diagnose, load_model, write_report
+    from jaxdmd.diagnose import DiagnoseConfig, diagnose, load_model
+    from jaxdmd.report import write_report
 
     progress = Progress()
     train = load_recordings(args.data)
