@@ -14,7 +14,9 @@ archive, records the best score, and applies the paper's rules:
   rounds (since the last extension) and the best score is <= -gamma. The JSON variable requests
   of the top-k skeletons are read; a requested variable the data holds joins the variable
   library; one it lacks is reported as a measurement to add;
-- termination when the best score stays above -gamma for R rounds, or after ``max_rounds``.
+- termination when the best score stays above -gamma for R rounds, or after ``max_rounds``
+  (plus up to R rounds when a variable joined the library in the last R rounds: the round
+  limit does not bind before a late variable had its chance).
 
 Beyond the paper, each round also offers one recombined candidate: the best line of every
 equation, taken from whichever candidates hold them (the equations are separable).
@@ -59,7 +61,7 @@ class SearchConfig:
     epsilon: float = 0.01
     gamma: float = 0.01
     patience: int = 3  # R
-    max_rounds: int = 15
+    max_rounds: int = 15  # plus up to `patience` rounds for a variable that joined late
     top_k: int = 3  # skeletons whose variable requests are read at an extension
     reset_period: int = 4  # rounds between resets of the weaker half of the islands; 0: never
     recombine: bool = True
@@ -419,6 +421,12 @@ def _maybe_stop(state: SearchState) -> SearchState:
             stop_reason=f"best score above -{cfg.gamma} for {cfg.patience} rounds",
         )
     if state.iteration >= cfg.max_rounds:
+        # a variable that joined in the last R rounds gets R rounds to be used: the round limit
+        # must not bind right after the extension it was waiting for (at most R rounds more)
+        last_join = max((r for _, r in state.joined), default=0)
+        recent = last_join > 0 and state.iteration - last_join < cfg.patience
+        if recent and state.iteration < cfg.max_rounds + cfg.patience:
+            return state
         return replace_state(state, done=True, stop_reason=f"round limit ({cfg.max_rounds})")
     return state
 

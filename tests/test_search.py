@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -336,3 +337,21 @@ def test_offline_subset_edit_finds_a_sparse_linear_equation():
     )
     chosen = {tuple(sorted(proposer._subset(rng, 0, variables))) for _ in range(5)}
     assert chosen == {("a3", "y")}
+
+
+def test_round_limit_waits_for_a_variable_that_joined_late():
+    """A variable that joins in the last R rounds gets R rounds to be used before the round
+    limit binds (and no more); without a late join the limit binds where it says."""
+    problem, contract = hidden_problem()
+    config = dataclasses.replace(CONFIG, max_rounds=5, gamma=1e-12)
+    state = search.init(problem, contract, jax.random.key(0), config)
+    at_limit = search.replace_state(state, iteration=5, history=(-1.0,) * 6)
+    assert search._maybe_stop(at_limit).done
+    late = search.replace_state(at_limit, joined=(("u", 4),))
+    assert not search._maybe_stop(late).done  # joined one round before the limit
+    for rounds in (6, 7):
+        assert search._maybe_stop(search.replace_state(late, iteration=rounds)).done is (
+            rounds == 7
+        )
+    early = search.replace_state(at_limit, joined=(("u", 1),))
+    assert search._maybe_stop(early).done
