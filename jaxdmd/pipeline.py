@@ -48,6 +48,11 @@ from jaxdmd.refine import (
     smoothed_states,
 )
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
+from jaxdmd.select import (
+    SelectionConfig,
+    select_by_simulation,
+    simulation_nrmse,
+)
 
 __all__ = [
     "Discovery",
@@ -101,6 +106,9 @@ class DiscoveryConfig:
         ae_joint: with ``ae_states="model"``, refit the AE equations by maximum likelihood with
             the states unknown (:func:`jaxdmd.refine.refit_joint`).
         ae_joint_steps: the joint refit's BFGS steps at most.
+        selection: how the final state equations are chosen among the archive's alternatives
+            by how they simulate the training recordings (:mod:`jaxdmd.select`); None keeps
+            the choice by cross-validated derivative error alone.
     """
 
     search: SearchConfig = field(default_factory=SearchConfig)
@@ -115,6 +123,7 @@ class DiscoveryConfig:
     ae_bias_correction: bool = True
     ae_joint: bool = True
     ae_joint_steps: int = 1000
+    selection: SelectionConfig | None = field(default_factory=SelectionConfig)
 
     def __post_init__(self) -> None:
         if self.derivatives not in ("estimated", "given"):
@@ -309,6 +318,19 @@ class Discovery:
             "mean": mean,
             "n_diverged": sum(1 for s in scores if s.get("diverged")),
         }
+
+    def held_out(self, recordings: Sequence[Dataset]) -> dict[str, Any]:
+        """Rollout metrics on held-out recordings, per state and mean over states and
+        recordings: ``"de"`` (the measured algebraic variables played in) and, with algebraic
+        equations, ``"dae"`` (only the inputs and the boundary played in). A rollout that
+        diverges counts, with its errors inf."""
+        from jaxdmd.report import rollout_summary
+
+        out: dict[str, Any] = {}
+        for mode in ("de", "dae") if self.ae is not None else ("de",):
+            scores = self.score(recordings, mode=mode)["recordings"]  # type: ignore[arg-type]
+            out[mode] = rollout_summary(scores)
+        return out
 
     def module_source(self) -> str:
         """The model as a Python module: skeletons and their fitted parameters (``model.py``)."""
@@ -552,17 +574,32 @@ def discover(
         # NMSEs of the integral form lie far below the derivatives': no absolute floor there
         floor=0.0 if integral else 1e-4,
     )
+    selection = None
+    if config.selection is not None:
+        start = time.perf_counter()
+        de, selection = select_by_simulation(de_state, de, train, config.selection)
+        selection["seconds"] = time.perf_counter() - start
+        de_seconds += selection["seconds"]
+        if selection.get("changed"):
+            observer.message(
+                "DE equations chosen by simulation: "
+                + ", ".join(f"d{t}/dt" for t in selection["changed"])  # type: ignore[union-attr]
+            )
+    judge = _Judge(train, config.selection)
     refit = None
     if config.refit_window:
-        de, refit_nmse = refit_integral(
+        refitted, refit_nmse = refit_integral(
             de, train, config.refit_window, jax.random.fold_in(de_key, 9)
         )
         nmse = dict(zip(de.contract.targets, refit_nmse, strict=True))
         refit = {"form": "integral", "window_s": config.refit_window, "nmse": nmse}
+        de = judge.better(de, refitted, refit)
     report: dict[str, Any] = {
         "proposer": factory.name,
         "de": _loop_summary(de_state, de, de_seconds, refit),
     }
+    if selection is not None:
+        report["de"]["selection"] = selection
 
     ae = ae_state = None
     ae_seconds = 0.0
@@ -585,15 +622,17 @@ def discover(
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:
             start = time.perf_counter()
-            ae, bias_report = refit_bias_compensated(ae, estimates)
+            refitted, bias_report = refit_bias_compensated(ae, estimates)
+            ae = judge.better(ae, refitted, bias_report, de=de)  # type: ignore[arg-type]
             ae_seconds += time.perf_counter() - start
         if fine and config.ae_joint:
             start = time.perf_counter()
             observer.message("AE refit: maximum likelihood with the states unknown ...")
             try:
-                ae, joint_report = refit_joint(
+                refitted, joint_report = refit_joint(
                     de, ae, train, estimates, max_steps=config.ae_joint_steps
                 )
+                ae = judge.better(ae, refitted, joint_report, de=de)
             except (ValueError, np.linalg.LinAlgError) as err:
                 joint_report = {"kept": f"the joint refit failed: {err}"}
             joint_report["seconds"] = time.perf_counter() - start
@@ -614,7 +653,38 @@ def discover(
     if stats is not None:
         report["llm"] = stats()
     report["wall_time_s"] = de_seconds + ae_seconds
-    return Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state, report=report)
+    result = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state, report=report)
+    if test:
+        report["test"] = result.held_out(test)
+    return result
+
+
+class _Judge:
+    """Keeps a refit only if the model simulates the training recordings at least as well
+    with it (:func:`jaxdmd.select.simulation_nrmse`: the state equations with the measured
+    algebraic variables played in, or, for algebraic equations, the closed model). A refit is
+    a better estimator on paper; whether it is better for the user is what the simulation says.
+    Without a selection config every refit is kept."""
+
+    def __init__(self, train: Sequence[Dataset], config: SelectionConfig | None) -> None:
+        self.train, self.config = list(train), config
+
+    def better(
+        self, before: Equations, after: Equations, report: dict, de: Equations | None = None
+    ) -> Equations:
+        if self.config is None or after is before:
+            return after
+        if de is None:
+            errors = [
+                simulation_nrmse(eq, self.train, config=self.config) for eq in (before, after)
+            ]
+        else:
+            errors = [simulation_nrmse(de, self.train, eq, self.config) for eq in (before, after)]
+        report["simulation_nrmse"] = {"before": errors[0], "after": errors[1]}
+        if errors[1] <= errors[0]:
+            return after
+        report["kept"] = "the refit simulates the training recordings worse"
+        return before
 
 
 def _ae_regressors(

@@ -30,6 +30,11 @@ def equations_markdown(discovery: Discovery) -> str:
     if discovery.ae is not None:
         lines += ["", "## Algebraic equations (AE loop)", ""]
         lines += [f"    {k} = {v}" for k, v in discovery.ae.readable().items()]
+    test = discovery.report.get("test")
+    if test:
+        n = next(iter(test.values()))["n_recordings"]
+        lines += ["", f"## Held-out rollouts ({n} recording(s), means over them)", ""]
+        lines += rollout_table(test).splitlines()
     return "\n".join(lines) + "\n"
 
 

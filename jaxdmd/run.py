@@ -216,6 +216,14 @@ def run_discover(args: argparse.Namespace) -> int:
     for eq in (result.de, result.ae):
         for k, v in (eq.readable() if eq is not None else {}).items():
             progress.console.print(f"  {k} = {v}")
+    if test:
+        from jaxdmd.report import plot_trajectories, rollout_table
+
+        progress.console.print(f"\n[bold]Held-out rollouts[/bold] ({len(test)} recording(s)):")
+        progress.console.print(rollout_table(result.report["test"]), markup=False)
+        modes = ("de", "dae") if result.ae is not None else ("de",)
+        sims = {m.upper(): result.simulate(test[0], m) for m in modes}  # type: ignore[arg-type]
+        plot_trajectories(out / "trajectories.png", test[0], sims)
     return 0
 
 

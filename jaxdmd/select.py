@@ -1,0 +1,515 @@
+"""The final model chosen by how it simulates recordings it was not fitted to.
+
+The search ranks candidates by how they fit estimated derivatives; a user judges a model by how
+it simulates. The two disagree where an equation fits the derivatives well but feeds back into
+the others badly: a stand-in variable that is correlated with the true one on the training data,
+a term that extrapolates beyond the training states, a slightly unstable mode. Here the
+candidate lines of each equation (the archive's alternatives, ranked and pruned by
+cross-validated derivative error in :func:`jaxdmd.search.final_equations`) are judged by
+simulation instead:
+
+1. **Each equation alone** (cheap): leave-one-recording-out, each line is fitted on the other
+   recordings and the held-out recording is simulated with that equation's state integrated and
+   every other channel played in (measured). Its error is the state's NRMSE (RMSE over the
+   measured range). A line that does not vanish at the recorded operating point drifts, an
+   unstable one diverges: both score badly without a special rule.
+2. **The equations together**: the best line of each equation (the simplest within
+   ``tolerance`` of the best simulation error) and the derivative-chosen lines are combined;
+   each combination is simulated coupled (all states integrated, the measured algebraic
+   variables played in) on every recording, and the one that simulates best is kept, the
+   simpler one on a tie.
+
+Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
+programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
+candidate rollouts cost seconds. Play-in is linear between samples and never across an event (a
+fault switched on or off), as :mod:`jaxdmd.rollout` plays signals in.
+
+With one recording, held-out time blocks replace held-out recordings (the recording is cut in
+``blocks`` pieces; a line is fitted on the other pieces and the held-out piece is simulated from
+its own first sample).
+"""
+
+from __future__ import annotations
+
+import ast
+import copy
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax
+import numpy as np
+
+from jaxdmd import interp
+from jaxdmd import lines as ln
+from jaxdmd.data import Dataset, event_samples
+from jaxdmd.fit import fit_batch
+from jaxdmd.search import Equations, SearchState, _compile, _line_skeleton, fit_problem
+from jaxdmd.skeleton import Skeleton, SkeletonError
+
+__all__ = ["SelectionConfig", "select_by_simulation", "simulate_host"]
+
+
+@dataclass(frozen=True)
+class SelectionConfig:
+    """How the final equations are chosen by simulation.
+
+    Attributes:
+        candidates: lines per equation simulated alone (the best by cross-validated derivative
+            error, then their pruned variants).
+        tolerance: relative simulation error within which a simpler line or model counts as
+            as good as the best (complexity breaks ties). The rollouts are compared with noisy
+            recordings and driven by noisy played-in channels: differences of a few percent
+            are noise, not evidence.
+        substeps: integration steps per sample interval (Heun's method: stable for modes
+            faster than the samples by a factor of two, such as T''_q0 = 0.04 s at 100 Hz).
+        blowup: a simulated state beyond ``blowup * (1 + max |measured|)`` has diverged.
+    """
+
+    candidates: int = 6
+    tolerance: float = 0.25
+    substeps: int = 1
+    blowup: float = 1e3
+
+
+# ----------------------------------------------------------------------------------------------
+# host simulation
+
+
+@dataclass(frozen=True)
+class _Played:
+    """Channels of one recording played in: values at sample k and at the right end of the
+    interval (k, k+1] (the left value held over an interval that ends at an event)."""
+
+    left: dict[str, np.ndarray]  # name -> [n - 1]
+    right: dict[str, np.ndarray]  # name -> [n - 1]
+
+
+def _played(ds: Dataset, names: Sequence[str]) -> _Played:
+    t = np.asarray(ds.t, dtype=float)
+    jump = event_samples(t, ds.events)[1:]  # interval k ends on an event sample
+    left, right = {}, {}
+    for n in names:
+        x = np.asarray(ds[n], dtype=float)
+        left[n] = x[:-1]
+        right[n] = np.where(jump, x[:-1], x[1:])
+    return _Played(left, right)
+
+
+def _evaluate(program: interp.Program, args: list[np.ndarray], params: np.ndarray) -> np.ndarray:
+    """Outputs ``[B, K]`` of a program at ``B`` points, each with its own parameter row."""
+    out = program.values(args, params)  # [B, K, B]
+    b = np.arange(params.shape[0])
+    return out[b, :, b]
+
+
+def simulate_host(
+    program: interp.Program,
+    targets: Sequence[str],
+    params: np.ndarray,
+    recordings: Sequence[Dataset],
+    *,
+    channels: Sequence[str] | None = None,
+    algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
+    substeps: int = 1,
+    blowup: float = 1e3,
+) -> np.ndarray:
+    """Integrate ``d targets/dt = program(arguments, p)`` from each recording's first sample,
+    every argument that is not a target played in from the recording. ``channels`` names the
+    recorded channel of each target (default: the target's own name; several targets may be
+    candidates for the same state, simulated side by side). ``algebraic`` closes the model: a
+    program, its targets and its parameters ``[B, P]``, evaluated before the state equations at
+    every stage on the simulated states and the played-in channels; its targets are then not
+    played in (a DAE rollout).
+
+    ``params`` is ``[B, P]``, one row per recording (``B == len(recordings)``; the recordings
+    must share their time grid and events). Returns the simulated targets ``[B, S, n]`` (NaN
+    from the first sample a rollout diverged at).
+    """
+    targets = tuple(targets)
+    first = recordings[0]
+    t = np.asarray(first.t, dtype=float)
+    for ds in recordings[1:]:
+        if ds.n_samples != first.n_samples or not np.array_equal(np.asarray(ds.t), t):
+            raise ValueError("simulate_host: the recordings must share their time grid")
+    ae_targets: tuple[str, ...] = () if algebraic is None else tuple(algebraic[1])
+    needed = [*program.arguments, *(algebraic[0].arguments if algebraic else ())]
+    played_names = sorted({a for a in needed if a not in targets and a not in ae_targets})
+    played = [_played(ds, played_names) for ds in recordings]
+    left = {a: np.stack([p.left[a] for p in played]) for a in played_names}  # [B, n - 1]
+    right = {a: np.stack([p.right[a] for p in played]) for a in played_names}
+    channels = targets if channels is None else tuple(channels)
+    measured = np.stack([[np.asarray(ds[c], dtype=float) for c in channels] for ds in recordings])
+    bound = blowup * (1.0 + np.max(np.abs(measured), axis=2))  # [B, S]
+    index = {s: i for i, s in enumerate(targets)}
+    b, s, n = measured.shape
+    out = np.full((b, s, n), np.nan)
+    x = measured[:, :, 0].copy()
+    out[:, :, 0] = x
+    params = np.asarray(params, dtype=float)
+
+    def field(x: np.ndarray, k: int, w: float) -> np.ndarray:
+        values = {a: x[:, i] for a, i in index.items()}
+        for a in played_names:
+            values[a] = (1 - w) * left[a][:, k] + w * right[a][:, k]
+        if algebraic is not None:
+            ae_program, _, ae_params = algebraic
+            closed = _evaluate(ae_program, [values[a] for a in ae_program.arguments], ae_params)
+            values.update({y: closed[:, i] for i, y in enumerate(ae_targets)})
+        return _evaluate(program, [values[a] for a in program.arguments], params)
+
+    with np.errstate(all="ignore"):
+        for k in range(n - 1):
+            h = (t[k + 1] - t[k]) / substeps
+            for m in range(substeps):  # Heun's method (trapezoidal predictor-corrector)
+                w0, w1 = m / substeps, (m + 1) / substeps
+                k1 = field(x, k, w0)
+                k2 = field(x + h * k1, k, w1)
+                x = x + 0.5 * h * (k1 + k2)
+            bad = ~(np.isfinite(x) & (np.abs(x) <= bound))  # each state on its own
+            x[bad] = np.nan
+            out[:, :, k + 1] = x
+            if bad.all():
+                break
+    return out
+
+
+def simulation_error(simulated: np.ndarray, recordings: Sequence[Dataset], targets) -> np.ndarray:
+    """NRMSE ``[B, S]`` of simulated states against the recordings (RMSE over the measured
+    range); inf where a rollout diverged."""
+    measured = np.stack([[np.asarray(ds[s], dtype=float) for s in targets] for ds in recordings])
+    return _nrmse(simulated, measured)
+
+
+def _nrmse(simulated: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    scale = np.ptp(measured, axis=2)
+    scale = np.where(scale > 0, scale, np.maximum(np.max(np.abs(measured), axis=2), 1.0))
+    err = np.sqrt(np.mean((simulated - measured) ** 2, axis=2)) / scale
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+# ----------------------------------------------------------------------------------------------
+# folds: leave one recording (or one time block) out
+
+
+def _folds(state: SearchState) -> np.ndarray:
+    groups = np.asarray(state.problem.groups) if state.problem.groups is not None else None
+    if groups is None:
+        return np.zeros(state.problem.targets.shape[1], dtype=int)
+    return groups
+
+
+def _fold_params(state: SearchState, j: int, skeletons: Sequence[Skeleton]) -> np.ndarray:
+    """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``."""
+    problem = state.problem
+    groups = _folds(state)
+    target = np.asarray(problem.targets[j])
+    w = np.ones(target.shape[0]) if problem.weights is None else np.asarray(problem.weights)
+    w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
+    names = sorted({a for sk in skeletons for a in sk.arguments})
+    variables = {n: problem.variables[n] for n in names}
+    folds = np.unique(groups)
+    width = max(1, max(sk.n_params for sk in skeletons))
+    out = np.full((len(skeletons), len(folds), width), np.nan)
+    for f, g in enumerate(folds):
+        held = groups == g
+        results = fit_batch(
+            skeletons,
+            variables,
+            target[None],
+            key=jax.random.fold_in(state.key, 1000 + f),
+            config=state.config.fit,
+            weights=(w * ~held)[None] if len(folds) > 1 else w[None],
+            operator=problem.operator,
+        )
+        for i, result in enumerate(results):
+            if result.error is None:
+                p = np.asarray(result.params, dtype=float)
+                out[i, f, : p.size] = p
+    return out
+
+
+def _complexity(line: ln.Line, states: set[str]) -> tuple[int, int, int]:
+    return (
+        line.n_params,
+        len(line.variables() - states),
+        sum(1 for _ in ast.walk(line.expr)),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# the selection
+
+
+class _Rename(ast.NodeTransformer):
+    def __init__(self, old: str, new: str) -> None:
+        self.old, self.new = old, new
+
+    def visit_Name(self, node: ast.Name) -> ast.Name:
+        return ast.Name(self.new, node.ctx) if node.id == self.old else node
+
+
+def _renamed(line: ln.Line, old: str, new: str) -> ln.Line:
+    expr = _Rename(old, new).visit(copy.deepcopy(line.expr))
+    return ln.Line(ast.fix_missing_locations(expr), line.n_params)
+
+
+def _archive_lines(state: SearchState) -> list[tuple[tuple[float, ...], tuple[ln.Line, ...]]]:
+    """Every distinct archived candidate's per-equation losses and lines."""
+    from jaxdmd.search import _distinct
+
+    entries = _distinct(e for isl in state.archive.islands for e in isl.entries)
+    return [(e.losses, ln.split_lines(e.source)[0]) for e in entries]
+
+
+def _candidate_lines(
+    archived: Sequence[tuple[tuple[float, ...], tuple[ln.Line, ...]]], j: int, chosen: ln.Line,
+    k: int,
+) -> list[ln.Line]:  # fmt: skip
+    """The chosen line, its pruned variants, and the ``k`` best distinct archived lines of
+    equation ``j`` by training loss (the chosen line first)."""
+    out: dict[str, ln.Line] = {chosen.text: chosen}
+    for variant in ln.without_each_summand(chosen):
+        out.setdefault(variant.text, variant)
+    extra = 0
+    for _, lines in sorted(archived, key=lambda e: e[0][j]):
+        if extra >= k:
+            break
+        if lines[j].text not in out:
+            out[lines[j].text] = lines[j]
+            extra += 1
+    return list(out.values())
+
+
+def _single_errors(
+    state: SearchState, j: int, lines: Sequence[ln.Line], recordings: Sequence[Dataset],
+    config: SelectionConfig,
+) -> np.ndarray:  # fmt: skip
+    """Each line's simulation error, its equation's state integrated alone, left-out fits.
+
+    The lines are simulated side by side: one program whose output i is line i with the state
+    renamed to its own copy, so one evaluation per step serves every candidate."""
+    target = state.contract.targets[j]
+    errors = np.full(len(lines), np.inf)
+    compiled: list[tuple[int, Skeleton]] = []
+    for i, line in enumerate(lines):
+        try:
+            compiled.append((i, _line_skeleton(state.contract, line)))
+        except SkeletonError:
+            continue
+    if not compiled:
+        return errors
+    params = _fold_params(state, j, [sk for _, sk in compiled])  # [lines, folds, P]
+    single = len(np.unique(_folds(state))) == 1
+    usable = [
+        (c, i) for c, (i, sk) in enumerate(compiled)
+        if np.all(np.isfinite(params[c, :, : sk.n_params]))
+    ]  # fmt: skip
+    if not usable:
+        return errors
+    copies = [f"{target}_c{i}" for _, i in usable]
+    renamed = [
+        _renamed(lines[i], target, name) for (_, i), name in zip(usable, copies, strict=True)
+    ]
+    used = set().union(*(line.variables() for line in renamed))
+    played = [a for a in state.contract.arguments if a in used and a != target]
+    source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in usable])
+    try:
+        program = interp.lower(source, n_outputs=len(usable))
+    except interp.LoweringError:
+        return errors
+    folds = params.shape[1]
+    rows = np.concatenate(
+        [params[c, :, : max(compiled[c][1].n_params, lines[i].n_params)] for c, i in usable],
+        axis=1,
+    )  # [folds, sum of the lines' parameters], in the assembled order
+    rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
+    sim = simulate_host(
+        program, copies, rows, recordings, channels=[target] * len(copies),
+        substeps=config.substeps, blowup=config.blowup,
+    )  # fmt: skip
+    measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])[:, None]
+    err = _nrmse(sim, np.broadcast_to(measured, sim.shape))  # [B, lines]
+    for (_, i), e in zip(usable, err.mean(axis=0), strict=True):
+        errors[i] = float(e)
+    return errors
+
+
+def _coupled_error(
+    equations: Equations, recordings: Sequence[Dataset], config: SelectionConfig
+) -> float:
+    """Mean NRMSE of all states simulated together (measured algebraic variables played in),
+    the parameters as given (fitted on all recordings)."""
+    skeleton = equations.skeleton()
+    program = interp.program_of(skeleton)
+    if program is None:
+        return float("inf")
+    targets = tuple(equations.contract.targets)
+    p = np.asarray(equations.params, dtype=float)[None, : max(1, skeleton.n_params)]
+    rows = np.repeat(p, len(recordings), axis=0)
+    sim = simulate_host(
+        program, targets, rows, recordings, substeps=config.substeps, blowup=config.blowup
+    )
+    return float(np.mean(simulation_error(sim, recordings, targets)))
+
+
+def _assemble(state: SearchState, chosen: Sequence[ln.Line]) -> Equations | None:
+    contract = state.contract
+    source = ln.assemble(contract.function_name, contract.arguments, chosen, contract.outputs)
+    try:
+        skeleton = _compile(source, contract)
+    except SkeletonError:
+        return None
+    (result,) = fit_problem([skeleton], state.problem, jax.random.fold_in(state.key, 7))
+    if result.error is not None:
+        return None
+    return Equations(
+        contract=contract,
+        source=skeleton.source,
+        params=tuple(float(x) for x in result.params),
+        losses=tuple(float(x) for x in result.losses),
+        score=float(result.score),
+    )
+
+
+def _pareto(points: Sequence[tuple[int, float, str]]) -> list[dict[str, object]]:
+    front, best = [], np.inf
+    for terms, err, text in sorted(points, key=lambda p: (p[0], p[1])):
+        if err < best:
+            front.append({"terms": terms, "simulation_nrmse": err, "line": text})
+            best = err
+    return front
+
+
+def select_by_simulation(
+    state: SearchState,
+    derivative_choice: Equations,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig | None = None,
+) -> tuple[Equations, dict[str, object]]:
+    """The DE loop's final equations chosen by simulation (see the module's docstring).
+
+    ``derivative_choice`` is :func:`jaxdmd.search.final_equations`'s result (the lines chosen
+    by cross-validated derivative error); ``recordings`` the training recordings the loop's
+    problem was built from (same order). Returns the chosen equations (parameters fitted on all
+    recordings, as the search fits) and a report: per equation the simulation error of each
+    candidate line, the Pareto front (terms against simulation error), the chosen line; and the
+    coupled simulation error of the derivative choice and of the chosen model.
+    """
+    config = config or SelectionConfig()
+    contract = state.contract
+    states = {v.name for v in contract.states}
+    recordings = list(recordings)
+    sims = recordings
+    if len(recordings) > 1:
+        t0 = np.asarray(recordings[0].t)
+        if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+            return derivative_choice, {"skipped": "the recordings do not share a time grid"}
+    derived, _ = ln.split_lines(derivative_choice.source)
+    archived = _archive_lines(state)
+    picked: list[ln.Line] = []
+    report: dict[str, object] = {"equations": {}}
+    for j, target in enumerate(contract.targets):
+        lines = _candidate_lines(archived, j, derived[j], config.candidates)
+        errors = _single_errors(state, j, lines, sims, config)
+        best = float(np.min(errors))
+        if not np.isfinite(best):
+            picked.append(derived[j])
+            report["equations"][target] = {"kept": "no candidate simulates"}  # type: ignore[index]
+            continue
+        bound = best * (1 + config.tolerance)
+        ranked = sorted(
+            (_complexity(line, states), float(err), i)
+            for i, (line, err) in enumerate(zip(lines, errors, strict=True))
+            if err <= bound
+        )
+        line = lines[ranked[0][-1]]
+        picked.append(line)
+        report["equations"][target] = {  # type: ignore[index]
+            "candidates": [
+                {"line": ln_.text, "simulation_nrmse": float(e)}
+                for ln_, e in zip(lines, errors, strict=True)
+            ],
+            "pareto": _pareto(
+                [
+                    (len(ln.summands(ln_.expr)), float(e), ln_.text)
+                    for ln_, e in zip(lines, errors, strict=True)
+                    if np.isfinite(e)
+                ]
+            ),
+            "chosen": line.text,
+        }
+    by_derivatives = _coupled_error(derivative_choice, sims, config)
+    report["coupled_nrmse_derivative_choice"] = by_derivatives
+    if [p.text for p in picked] == [d.text for d in derived]:
+        report["coupled_nrmse"] = by_derivatives
+        report["changed"] = []
+        return derivative_choice, report
+    chosen = _assemble(state, picked)
+    by_simulation = _coupled_error(chosen, sims, config) if chosen is not None else np.inf
+    report["coupled_nrmse_simulation_choice"] = by_simulation
+    if chosen is None or not by_simulation <= by_derivatives * (1 + config.tolerance):
+        report["coupled_nrmse"] = by_derivatives
+        report["changed"] = []
+        report["kept"] = "the derivative choice simulates better coupled"
+        return derivative_choice, report
+    report["coupled_nrmse"] = by_simulation
+    report["changed"] = [
+        t for t, a, b in zip(contract.targets, picked, derived, strict=True) if a.text != b.text
+    ]
+    return dataclasses.replace(chosen), report
+
+
+# ----------------------------------------------------------------------------------------------
+# the closed model (DAE): the algebraic variables computed, never played in
+
+
+def dae_error(
+    de: Equations,
+    ae_program: interp.Program,
+    ae_targets: Sequence[str],
+    ae_params: np.ndarray,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig,
+) -> float:
+    """Mean NRMSE of the states of the closed model (the algebraic variables computed by the AE
+    program) simulated on ``recordings``; inf if a rollout diverged."""
+    skeleton = de.skeleton()
+    program = interp.program_of(skeleton)
+    if program is None:
+        return float("inf")
+    b = len(recordings)
+    p = np.asarray(de.params, dtype=float)[None, : max(1, skeleton.n_params)]
+    q = np.asarray(ae_params, dtype=float)[None, : max(1, ae_program.n_params)]
+    targets = tuple(de.contract.targets)
+    sim = simulate_host(
+        program, targets, np.repeat(p, b, axis=0), recordings,
+        algebraic=(ae_program, tuple(ae_targets), np.repeat(q, b, axis=0)),
+        substeps=config.substeps, blowup=config.blowup,
+    )  # fmt: skip
+    return float(np.mean(simulation_error(sim, recordings, targets)))
+
+
+def simulation_nrmse(
+    de: Equations,
+    recordings: Sequence[Dataset],
+    ae: Equations | None = None,
+    config: SelectionConfig | None = None,
+) -> float:
+    """Mean NRMSE of the states simulated on ``recordings``: the state equations with the
+    measured algebraic variables played in, or closed by ``ae`` (a DAE rollout); inf if a
+    rollout diverged or the recordings do not share a time grid. The yardstick of every choice
+    :func:`jaxdmd.pipeline.discover` makes after the search (a refit is kept only if the model
+    simulates the training recordings as well as before)."""
+    config = config or SelectionConfig()
+    recordings = list(recordings)
+    t0 = np.asarray(recordings[0].t)
+    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+        return float("inf")
+    if ae is None:
+        return _coupled_error(de, recordings, config)
+    skeleton = ae.skeleton()
+    program = interp.program_of(skeleton)
+    if program is None:
+        return float("inf")
+    return dae_error(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
