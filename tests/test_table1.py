@@ -1,4 +1,5 @@
-"""Tests of benchmarks/table1.py: aggregation, goal check, the docs section, the oracle skeleton."""
+"""Tests of benchmarks/table1.py: aggregation, goal check, the docs section, the oracle skeleton,
+the pooled table over seeds and the (generator, seed) jobs."""
 
 from __future__ import annotations
 
@@ -111,7 +112,7 @@ def test_oracle_skeletons_are_the_true_structure() -> None:
     truth = table1.oracle_truth(31)
     ae = compile_skeleton(table1.ORACLE_AE_SOURCE, variables=table1.ORACLE_AE_ARGS, n_outputs=3)
     de = compile_skeleton(table1.ORACLE_DE_SOURCE, variables=table1.ORACLE_DE_ARGS, n_outputs=5)
-    assert (ae.n_params, de.n_params) == (2, 9)
+    assert (ae.n_params, de.n_params) == (6, 9)
     ra, xdp, M, Td0 = 0.0027, 0.0697, 60.6, 6.56
     rng = np.random.default_rng(0)
     v = {n: rng.uniform(0.5, 1.2, 50) for n in {*table1.ORACLE_AE_ARGS, *table1.ORACLE_DE_ARGS}}
@@ -127,3 +128,161 @@ def test_oracle_skeletons_are_the_true_structure() -> None:
     np.testing.assert_allclose(d[1], (v["P_m"] - v["P_e"]) / M, rtol=1e-12)
     expect = (-v["e_qp"] - (0.295 - xdp) * v["i_d"] + v["v_f"]) / Td0
     np.testing.assert_allclose(d[2], expect, rtol=1e-12)
+
+
+def test_oracle_lines_have_their_own_parameters() -> None:
+    """The pipeline's AE refits work line by line: each oracle AE line owns its (r_a K, x'_d K)."""
+    from jaxdmd import lines as ln
+
+    lines, mappings = ln.split_lines(table1.ORACLE_AE_SOURCE)
+    assert [line.n_params for line in lines] == [2, 2, 2]
+    assert mappings == ((0, 1), (2, 3), (4, 5))
+    assert len(table1.ORACLE_AE_PARAMS) == 6
+    truth = table1.oracle_truth(31)["ae"]
+    assert list(truth.values())[:2] == list(truth.values())[2:4] == list(truth.values())[4:]
+
+
+def test_oracle_contracts_roles() -> None:
+    roles = {"i_d": "algebraic", "i_q": "algebraic", "P_e": "algebraic", "P_m": "input"}
+    roles |= {"v_f": "input", "V": "boundary", "theta": "boundary"}
+
+    class Recording:
+        def role(self, name: str) -> str:
+            return "state" if name in table1.STATES else roles[name]
+
+        def unit(self, name: str) -> str:
+            return "pu"
+
+    de, ae = table1.oracle_contracts(Recording())
+    assert de.loop == "DE" and de.targets == table1.STATES
+    assert de.arguments == table1.ORACLE_DE_ARGS and ae.arguments == table1.ORACLE_AE_ARGS
+    assert [v.role for v in de.library] == ["algebraic"] * 3 + ["input"] * 2
+    assert ae.loop == "AE" and ae.targets == table1.ORACLE_AE_TARGETS
+    assert [(v.name, v.role) for v in ae.library] == [("V", "boundary"), ("theta", "boundary")]
+    assert ae.outputs == ("i_d_", "i_q_", "P_e_")
+
+
+def _seed(values: dict[int, tuple[float, float]], diverged=(), errors=()) -> dict:
+    out = {}
+    for gen, (m, r) in values.items():
+        rows = {k: (m, r) for k in ("jaxdmd_dae", "jaxdmd_de", "oracle_dae")}
+        g = _generator(
+            gen, {} if gen in errors else rows, diverged=("jaxdmd_dae",) if gen in diverged else ()
+        )
+        out[gen] = g
+    return out
+
+
+def test_pool_and_acceptance() -> None:
+    good = _seed({30: (0.1, 0.99), 31: (0.2, 0.98)})
+    ok = _seed({30: (0.1, 0.99), 31: (0.2, 0.98)})
+    above = _seed({30: (0.05, 0.99), 31: (1.5, 0.99)})  # mean 0.775 %, one above 1 %
+    pooled = table1.pool({0: good, 1: ok})
+    assert pooled["n_pairs"] == 4 and pooled["seeds"] == [0, 1]
+    assert pooled["mean"]["jaxdmd_dae"]["mape"] == pytest.approx(0.15)
+    assert pooled["mean"]["jaxdmd_dae"]["mape_median"] == pytest.approx(0.15)
+    per = pooled["per_seed"]["0"]["jaxdmd_dae"]
+    assert per["mape"] == pytest.approx(0.15) and per["r2"] == pytest.approx(0.985)
+    assert per["n_bad"] == 0 and per["n_generators"] == 2
+    assert pooled["acceptance"]["met"]
+    assert pooled["cells"]["1"]["31"]["mape"] == pytest.approx(0.2)
+
+    pooled = table1.pool({0: good, 2: above})
+    acc = pooled["acceptance"]
+    assert acc["per_seed"]["0"]["met"] and not acc["per_seed"]["2"]["met"]
+    assert not acc["per_seed"]["2"]["mape_met"] and acc["per_seed"]["2"]["r2_met"]
+    assert pooled["per_seed"]["2"]["jaxdmd_dae"]["above_max_mape"] == [31]
+    assert not acc["met"]
+
+    # a diverged generator fails its seed even with good means elsewhere; an error too
+    div = _seed({30: (0.1, 0.99), 31: (0.1, 0.99)}, diverged=(31,))
+    err = _seed({30: (0.1, 0.99), 31: (0.1, 0.99)}, errors=(31,))
+    pooled = table1.pool({0: good, 3: div, 4: err})
+    s3, s4 = pooled["per_seed"]["3"]["jaxdmd_dae"], pooled["per_seed"]["4"]["jaxdmd_dae"]
+    assert s3["diverged"] == [31] and s3["mape"] == math.inf
+    assert s4["errors"] == [31] and s4["mape"] == pytest.approx(0.1)
+    assert pooled["acceptance"]["per_seed"]["0"]["met"]
+    assert not pooled["acceptance"]["per_seed"]["3"]["met"]
+    assert not pooled["acceptance"]["per_seed"]["4"]["none_bad"]
+    assert pooled["cells"]["4"]["31"] == {"error": "RuntimeError: boom"}
+    assert pooled["mean"]["jaxdmd_dae"]["n_errors"] == 1
+    assert pooled["mean"]["jaxdmd_dae"]["n_generators"] == 5  # pairs scored
+
+    result = {
+        "settings": {"operating_points": 4, "noise": 0.01, "rounds": 15, "jobs": 2},
+        **pooled,
+        "wall_time_s": 12.0,
+    }
+    md = table1.pooled_markdown(result)
+    assert "Pooled over 6 (generator, seed) pair(s): seeds 0, 3, 4" in md
+    assert "| jaxdmd (full DAE) |" in md and "**missed**" in md
+    assert (
+        "| 3 | 2 | inf | -inf |" in md
+        and "| 31 | 0.2 / 0.98 | inf / -inf (diverged) | error |" in md
+    )
+    assert "with 2 job(s)" in md
+
+
+def test_jobs_and_layout(tmp_path: Path) -> None:
+    out = tmp_path / "t1"
+    assert table1.seed_folder(out, 2, multi=True) == out / "seed2"
+    assert table1.seed_folder(out, 2, multi=False) == out
+    jobs = table1.plan_jobs(out, [30, 31], [0, 1], multi=True, resume=False)
+    assert jobs == [(30, 0), (31, 0), (30, 1), (31, 1)]
+    # --resume leaves out the pairs done (and only those)
+    gens = out / "seed1" / "generators"
+    gens.mkdir(parents=True)
+    (gens / "gen30.json").write_text('{"status": "done", "generator": 30}')
+    (gens / "gen31.json").write_text('{"status": "failed", "generator": 31}')
+    assert table1.plan_jobs(out, [30, 31], [0, 1], multi=True, resume=True) == [
+        (30, 0),
+        (31, 0),
+        (31, 1),
+    ]
+    assert table1.plan_jobs(out, [30, 31], [0, 1], multi=True, resume=False) == jobs
+    assert table1.finished(out / "seed1").keys() == {30}
+    # a single --seed keeps today's layout: files directly in --out
+    (out / "generators").mkdir()
+    (out / "generators" / "gen31.json").write_text('{"status": "done", "generator": 31}')
+    assert table1.plan_jobs(out, [30, 31], [5], multi=False, resume=True) == [(30, 5)]
+
+    # the worker's command line repeats the settings that change the results
+    argv = ["--out", str(out), "--seeds", "0", "1", "--jobs", "2", "--rounds", "3"]
+    argv += ["--integral", "0.5", "--no-recombine", "--quiet-rounds", "--noise", "0.02"]
+    args = table1.build_parser().parse_args(argv)
+    cmd = table1.worker_command(args, 31, 1, out / "seed1", out / ".data" / "seed1" / "gen31")
+    assert cmd[1].endswith("table1.py") and "--worker" in cmd
+    child = table1.build_parser().parse_args(cmd[2:])
+    assert child.worker and child.generators == [31] and child.seed == 1
+    assert child.out == str(out / "seed1") and child.seeds is None and child.jobs == 1
+    for key in table1.SETTING_KEYS:
+        if key != "seed":
+            assert getattr(child, key) == getattr(args, key), key
+    assert child.quiet_rounds
+
+    env = table1.child_environment({"PATH": "/bin", "OMP_NUM_THREADS": "8"}, jobs=2)
+    assert env["JAX_PLATFORMS"] == "cpu" and env["PATH"] == "/bin"
+    assert all(env[v] == "1" for v in table1.THREAD_VARIABLES)
+    env = table1.child_environment({"OMP_NUM_THREADS": "8"}, jobs=1)
+    assert env["OMP_NUM_THREADS"] == "8" and "OPENBLAS_NUM_THREADS" not in env
+
+
+def test_recordings_round_trip(tmp_path: Path) -> None:
+    """The parent saves a seed's recordings, a worker reads them back exactly."""
+    from jaxdmd.data import Dataset
+
+    t = np.linspace(0.0, 1.0, 11)
+    ds = Dataset.create(
+        t,
+        [("delta", np.sin(t)), ("V", np.cos(t))],
+        {"delta": "state", "V": "boundary"},
+        events=(0.3, 0.5),
+        label="x",
+    )
+    table1.save_recordings(tmp_path, [ds, ds], [ds], 12.5)
+    train, test, seconds = table1.load_recordings(tmp_path)
+    assert len(train) == 2 and len(test) == 1 and seconds == 12.5
+    for a in (*train, *test):
+        assert a.names == ds.names and a.events == ds.events and a.label == "x"
+        np.testing.assert_array_equal(np.asarray(a.values), np.asarray(ds.values))
+        np.testing.assert_array_equal(np.asarray(a.derivatives), np.asarray(ds.derivatives))
