@@ -50,7 +50,10 @@ from jaxdmd.refine import (
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
 from jaxdmd.select import (
     SelectionConfig,
+    inclusion_frequency,
+    pool,
     select_by_simulation,
+    select_closed,
     simulation_nrmse,
 )
 
@@ -106,6 +109,10 @@ class DiscoveryConfig:
         ae_joint: with ``ae_states="model"``, refit the AE equations by maximum likelihood with
             the states unknown (:func:`jaxdmd.refine.refit_joint`).
         ae_joint_steps: the joint refit's BFGS steps at most.
+        searches: independent searches of the DE loop (PRNG keys folded from the DE key),
+            run one after the other; their archives are pooled for the final choice, and each
+            chosen term's share of the searches whose own final equations hold it is reported
+            (the structure must not be an accident of one search path).
         selection: how the final state equations are chosen among the archive's alternatives
             by how they simulate the training recordings (:mod:`jaxdmd.select`); None keeps
             the choice by cross-validated derivative error alone.
@@ -123,6 +130,7 @@ class DiscoveryConfig:
     ae_bias_correction: bool = True
     ae_joint: bool = True
     ae_joint_steps: int = 1000
+    searches: int = 3
     selection: SelectionConfig | None = field(default_factory=SelectionConfig)
 
     def __post_init__(self) -> None:
@@ -132,6 +140,8 @@ class DiscoveryConfig:
             )
         if self.ae_states not in ("model", "smoothed"):
             raise ValueError(f"ae_states must be 'model' or 'smoothed', got {self.ae_states!r}")
+        if self.searches < 1:
+            raise ValueError(f"searches must be at least 1, got {self.searches}")
         for name in ("integral_window", "refit_window", "de_gamma", "ae_gamma"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -544,36 +554,45 @@ def discover(
     folder = None if checkpoints is None else Path(checkpoints)
     de_key, ae_key = jax.random.split(key)
 
+    def run(
+        name: str, problem: Problem, contract: Contract, key: jax.Array, cfg: SearchConfig
+    ) -> SearchState:
+        checkpoint = None if folder is None else folder / f"{name.lower()}_state.json"
+        state = resume_or_init(problem, contract, key, cfg, checkpoint)
+        observer.loop_started(f"{label}{name}", state)
+        return run_loop(
+            state,
+            factory(problem, name.rstrip("0123456789")),
+            on_round=lambda s, r: observer.round(f"{label}{name}", s, r),
+            checkpoint=checkpoint,
+        )
+
     def loop(
         name: str, problem: Problem, contract: Contract, key: jax.Array, cfg: SearchConfig,
         floor: float,
     ) -> tuple[SearchState, Equations, float]:  # fmt: skip
         start = time.perf_counter()
-        checkpoint = None if folder is None else folder / f"{name.lower()}_state.json"
-        state = resume_or_init(problem, contract, key, cfg, checkpoint)
-        observer.loop_started(f"{label}{name}", state)
-        state = run_loop(
-            state,
-            factory(problem, name),
-            on_round=lambda s, r: observer.round(f"{label}{name}", s, r),
-            checkpoint=checkpoint,
-        )
+        state = run(name, problem, contract, key, cfg)
         return state, search.final_equations(state, floor=floor), time.perf_counter() - start
 
-    de_state, de, de_seconds = loop(
-        "DE",
-        *de_problem(
-            train,
-            matched=config.matched,
-            weighted=weighted,
-            integral=integral,
-            smooth=bool(integral),
-        ),
-        de_key,
-        config.de_search(),
-        # NMSEs of the integral form lie far below the derivatives': no absolute floor there
-        floor=0.0 if integral else 1e-4,
+    # the DE loop: several independent searches, their archives pooled for the final choice
+    start = time.perf_counter()
+    de_problem_, de_contract = de_problem(
+        train, matched=config.matched, weighted=weighted, integral=integral, smooth=bool(integral)
     )
+    keys = [de_key, *(jax.random.fold_in(de_key, 100 + i) for i in range(1, config.searches))]
+    de_states = [
+        run("DE" if i == 0 else f"DE{i + 1}", de_problem_, de_contract, k, config.de_search())
+        for i, k in enumerate(keys)
+    ]
+    # NMSEs of the integral form lie far below the derivatives': no absolute floor there
+    floor = 0.0 if integral else 1e-4
+    de_state = pool(de_states)
+    de = search.final_equations(de_state, floor=floor)
+    per_search = (
+        [search.final_equations(s, floor=floor) for s in de_states] if len(keys) > 1 else [de]
+    )
+    de_seconds = time.perf_counter() - start
     selection = None
     if config.selection is not None:
         start = time.perf_counter()
@@ -600,6 +619,12 @@ def discover(
     }
     if selection is not None:
         report["de"]["selection"] = selection
+    if len(de_states) > 1:
+        report["de"]["searches"] = [
+            {"rounds": st.iteration, "stop_reason": st.stop_reason, "equations": eq.readable(),
+             "library": [{"name": n, "joined_round": r} for n, r in st.joined]}
+            for st, eq in zip(de_states, per_search, strict=True)
+        ]  # fmt: skip
 
     ae = ae_state = None
     ae_seconds = 0.0
@@ -649,6 +674,16 @@ def discover(
 
             summary["test_r2"] = algebraic_r2(ae, list(test))
         report["ae"] = summary
+        if config.selection is not None:
+            start = time.perf_counter()
+            de = _closed_selection(de_state, de, ae, train, config, judge, de_key, report)
+            report["de"]["closed_selection"]["seconds"] = time.perf_counter() - start
+            if report["de"]["closed_selection"].get("changed"):
+                observer.message(
+                    "DE equations chosen by how the closed model simulates: "
+                    + ", ".join(f"d{t}/dt" for t in report["de"]["closed_selection"]["changed"])
+                )
+    report["de"]["inclusion_frequency"] = inclusion_frequency(de, per_search)
     stats = getattr(factory, "stats", None)
     if stats is not None:
         report["llm"] = stats()
@@ -685,6 +720,42 @@ class _Judge:
             return after
         report["kept"] = "the refit simulates the training recordings worse"
         return before
+
+
+def _closed_selection(
+    de_state: SearchState,
+    de: Equations,
+    ae: Equations,
+    train: Sequence[Dataset],
+    config: DiscoveryConfig,
+    judge: _Judge,
+    de_key: jax.Array,
+    report: dict[str, Any],
+) -> Equations:
+    """The state equations chosen again by how the closed model simulates
+    (:func:`jaxdmd.select.select_closed`); a new choice is refitted in the integral form (kept
+    if the closed model simulates no worse with it) and replaces ``report["de"]``'s equations."""
+    chosen, closed = select_closed(de_state, de, ae, train, config.selection)
+    if closed.get("changed"):
+        if config.refit_window:
+            refitted, _ = refit_integral(
+                chosen, train, config.refit_window, jax.random.fold_in(de_key, 9)
+            )
+            before = simulation_nrmse(chosen, train, ae, config.selection)
+            after = simulation_nrmse(refitted, train, ae, config.selection)
+            closed["refit_integral"] = {"before": before, "after": after}
+            chosen = refitted if after <= before else chosen
+        de_report = report["de"]
+        de_report.update(
+            equations=chosen.readable(),
+            source=chosen.source,
+            params=list(chosen.params),
+            nmse=dict(zip(chosen.contract.targets, chosen.losses, strict=True)),
+            score=chosen.score,
+        )
+        de = chosen
+    report["de"]["closed_selection"] = closed
+    return de
 
 
 def _ae_regressors(

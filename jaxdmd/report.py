@@ -30,6 +30,13 @@ def equations_markdown(discovery: Discovery) -> str:
     if discovery.ae is not None:
         lines += ["", "## Algebraic equations (AE loop)", ""]
         lines += [f"    {k} = {v}" for k, v in discovery.ae.readable().items()]
+    frequency = discovery.report.get("de", {}).get("inclusion_frequency")
+    searches = len(discovery.report.get("de", {}).get("searches", [])) or 1
+    if frequency and searches > 1:
+        lines += ["", f"## How often each term was chosen ({searches} independent searches)", ""]
+        lines += ["| equation | term | share of the searches |", "|---|---|---|"]
+        for target, terms in frequency.items():
+            lines += [f"| d{target}/dt | `{t}` | {share:.2f} |" for t, share in terms.items()]
     test = discovery.report.get("test")
     if test:
         n = next(iter(test.values()))["n_recordings"]

@@ -199,19 +199,22 @@ def _folds(state: SearchState) -> np.ndarray:
     return groups
 
 
-def _fold_params(state: SearchState, j: int, skeletons: Sequence[Skeleton]) -> np.ndarray:
-    """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``."""
+def _fold_params(
+    state: SearchState, j: int, skeletons: Sequence[Skeleton], folds: bool = True
+) -> np.ndarray:
+    """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``
+    (with ``folds`` False: fitted on all recordings, ``[lines, 1, P_max]``)."""
     problem = state.problem
-    groups = _folds(state)
+    groups = _folds(state) if folds else np.zeros(state.problem.targets.shape[1], dtype=int)
     target = np.asarray(problem.targets[j])
     w = np.ones(target.shape[0]) if problem.weights is None else np.asarray(problem.weights)
     w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
     names = sorted({a for sk in skeletons for a in sk.arguments})
     variables = {n: problem.variables[n] for n in names}
-    folds = np.unique(groups)
+    n_folds = np.unique(groups)
     width = max(1, max(sk.n_params for sk in skeletons))
-    out = np.full((len(skeletons), len(folds), width), np.nan)
-    for f, g in enumerate(folds):
+    out = np.full((len(skeletons), len(n_folds), width), np.nan)
+    for f, g in enumerate(n_folds):
         held = groups == g
         results = fit_batch(
             skeletons,
@@ -219,7 +222,7 @@ def _fold_params(state: SearchState, j: int, skeletons: Sequence[Skeleton]) -> n
             target[None],
             key=jax.random.fold_in(state.key, 1000 + f),
             config=state.config.fit,
-            weights=(w * ~held)[None] if len(folds) > 1 else w[None],
+            weights=(w * ~held)[None] if len(n_folds) > 1 else w[None],
             operator=problem.operator,
         )
         for i, result in enumerate(results):
@@ -513,3 +516,185 @@ def simulation_nrmse(
     if program is None:
         return float("inf")
     return dae_error(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
+
+
+def _fitted_lines(state: SearchState, j: int, lines: Sequence[ln.Line]) -> list[np.ndarray | None]:
+    """Each line of equation ``j`` fitted on all of the loop's data (None where it fails)."""
+    out: list[np.ndarray | None] = [None] * len(lines)
+    compiled = []
+    for i, line in enumerate(lines):
+        try:
+            compiled.append((i, _line_skeleton(state.contract, line)))
+        except SkeletonError:
+            continue
+    if not compiled:
+        return out
+    params = _fold_params(state, j, [sk for _, sk in compiled], folds=False)
+    for c, (i, _) in enumerate(compiled):
+        p = params[c, 0, : lines[i].n_params]
+        if np.all(np.isfinite(p)):
+            out[i] = p
+    return out
+
+
+def select_closed(
+    state: SearchState,
+    de: Equations,
+    ae: Equations,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig | None = None,
+) -> tuple[Equations, dict[str, object]]:
+    """The state equations chosen again, now by how the closed model simulates.
+
+    After the AE loop every algebraic variable of the DE library has an equation, so the model
+    can be simulated as the user will simulate it: only inputs and the boundary played in. One
+    pass over the state equations: each of the current equation's candidate lines (the current
+    line, its pruned variants, the archive's best; fitted on all recordings, the current line
+    with its own parameters) is put in, the closed model is simulated on every recording, and
+    the simplest line within ``tolerance`` of the best error stays. A line that needs an
+    algebraic variable the AE equations do not give is not a candidate. The result replaces
+    ``de`` only if the closed model simulates better; its parameters are then fitted as the
+    search fits them (the caller refits them in the integral form).
+    """
+    config = config or SelectionConfig()
+    contract = state.contract
+    recordings = list(recordings)
+    t0 = np.asarray(recordings[0].t)
+    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+        return de, {"skipped": "the recordings do not share a time grid"}
+    ae_program = interp.program_of(ae.skeleton())
+    if ae_program is None:
+        return de, {"skipped": "the algebraic equations do not lower to a program"}
+    closed = set(ae.contract.targets)
+    algebraic = {v.name for v in contract.library if v.role == "algebraic"}
+    ae_params = np.asarray(ae.params, dtype=float)
+    states = {v.name for v in contract.states}
+    derived, mappings = ln.split_lines(de.source)
+    current = list(derived)
+    params = [np.asarray(de.params, dtype=float)[list(m)] for m in mappings]
+    archived = _archive_lines(state)
+
+    def error(lines: Sequence[ln.Line], ps: Sequence[np.ndarray]) -> float:
+        source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
+        try:
+            program = interp.lower(source, n_outputs=len(lines))
+        except interp.LoweringError:
+            return float("inf")
+        b = len(recordings)
+        flat = np.concatenate([*ps, np.zeros(1)])[None]
+        sim = simulate_host(
+            program, contract.targets, np.repeat(flat, b, axis=0), recordings,
+            algebraic=(ae_program, ae.contract.targets, np.repeat(ae_params[None], b, axis=0)),
+            substeps=config.substeps, blowup=config.blowup,
+        )  # fmt: skip
+        return float(np.mean(simulation_error(sim, recordings, contract.targets)))
+
+    start = error(current, params)
+    report: dict[str, object] = {"dae_nrmse_before": start, "equations": {}}
+    total = start
+    for j, target in enumerate(contract.targets):
+        lines = [
+            line
+            for line in _candidate_lines(archived, j, current[j], config.candidates)
+            if not (line.variables() & algebraic) - closed
+        ]
+        if not lines or lines[0].text != current[j].text:
+            continue  # the current line itself cannot be closed: nothing to compare with
+        fitted = _fitted_lines(state, j, lines)
+        fitted[0] = params[j]
+        errors = np.full(len(lines), np.inf)
+        for i, (line, p) in enumerate(zip(lines, fitted, strict=True)):
+            if p is not None:
+                errors[i] = error([*current[:j], line, *current[j + 1 :]],
+                                  [*params[:j], p, *params[j + 1 :]])  # fmt: skip
+        best = float(np.min(errors))
+        if not np.isfinite(best):
+            continue
+        k = sorted(
+            (_complexity(line, states), float(e), i)
+            for i, (line, e) in enumerate(zip(lines, errors, strict=True))
+            if e <= best * (1 + config.tolerance)
+        )[0][-1]
+        current[j], params[j] = lines[k], fitted[k]  # type: ignore[assignment]
+        total = float(errors[k])
+        report["equations"][target] = {  # type: ignore[index]
+            "candidates": [
+                {"line": line.text, "dae_nrmse": float(e)}
+                for line, e in zip(lines, errors, strict=True)
+            ],
+            "chosen": lines[k].text,
+        }
+    changed = [
+        t for t, a, b in zip(contract.targets, current, derived, strict=True) if a.text != b.text
+    ]
+    report["dae_nrmse"] = total
+    if not changed or not total < start:
+        report["changed"] = []
+        report["dae_nrmse"] = start
+        return de, report
+    chosen = _assemble(state, current)
+    if chosen is None:
+        report["changed"] = []
+        report["dae_nrmse"] = start
+        return de, report
+    report["changed"] = changed
+    return chosen, report
+
+
+# ----------------------------------------------------------------------------------------------
+# several searches: one pool of candidates, and how often each term is chosen
+
+
+def pool(states: Sequence[SearchState]) -> SearchState:
+    """One state whose archive holds every search's islands and whose library is the union of
+    the searches' libraries (the first state's data, key and configuration): the candidates
+    :func:`jaxdmd.search.final_equations` and :func:`select_by_simulation` choose from."""
+    from jaxdmd import archive as arc
+    from jaxdmd.search import replace_state
+
+    first = states[0]
+    if len(states) == 1:
+        return first
+    library = list(first.contract.library)
+    for state in states[1:]:
+        for v in state.contract.library:
+            if v.name not in {u.name for u in library}:
+                library.append(v)
+    islands = tuple(isl for state in states for isl in state.archive.islands)
+    config = dataclasses.replace(first.archive.config, n_islands=len(islands))
+    joined = tuple(dict.fromkeys(j for state in states for j in state.joined))
+    return replace_state(
+        first,
+        contract=dataclasses.replace(first.contract, library=tuple(library)),
+        archive=arc.Archive(islands, config),
+        joined=joined,
+    )
+
+
+def _terms(line: ln.Line) -> set[str]:
+    """The summands of a line with its parameters blanked (``p[3] * (omega - 1)`` and
+    ``p[0] * (omega - 1)`` are the same term)."""
+
+    class _Blank(ast.NodeTransformer):
+        def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+            if isinstance(node.value, ast.Name) and node.value.id == "p":
+                return ast.Name("p", ast.Load())
+            return self.generic_visit(node)
+
+    return {ast.unparse(_Blank().visit(copy.deepcopy(s))) for s in ln.summands(line.expr)}
+
+
+def inclusion_frequency(
+    chosen: Equations, per_search: Sequence[Equations]
+) -> dict[str, dict[str, float]]:
+    """For each equation of ``chosen``, each of its terms with the share of the searches whose
+    own final equation holds that term (1.0: every search chose it; a term only the pool found
+    has 0.0)."""
+    lines, _ = ln.split_lines(chosen.source)
+    theirs = [ln.split_lines(eq.source)[0] for eq in per_search]
+    out: dict[str, dict[str, float]] = {}
+    for j, target in enumerate(chosen.contract.targets):
+        terms = _terms(lines[j])
+        sets = [_terms(other[j]) for other in theirs]
+        out[target] = {t: sum(t in s for s in sets) / max(1, len(sets)) for t in sorted(terms)}
+    return out

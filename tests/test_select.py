@@ -80,3 +80,22 @@ def test_a_term_derivatives_cannot_see_is_found_by_simulation(drift_search):
     assert report["coupled_nrmse"] < 0.5 * report["coupled_nrmse_derivative_choice"]
     pareto = report["equations"]["x"]["pareto"]
     assert [p["terms"] for p in pareto] == sorted(p["terms"] for p in pareto)
+
+
+def test_searches_pool_their_archives_and_terms_are_counted(drift_search):
+    from jaxdmd.select import inclusion_frequency, pool
+
+    state, _ = drift_search
+    pooled = pool([state, state])
+    assert len(pooled.archive.islands) == 2 * len(state.archive.islands)
+    assert pooled.contract.arguments == state.contract.arguments
+    chosen = search.final_equations(pooled)
+    both = inclusion_frequency(chosen, [chosen, chosen])
+    assert all(share == 1.0 for terms in both.values() for share in terms.values())
+    one_term = search.Equations(
+        chosen.contract, "def equation(x, u, p):\n    d_x = p[0] * u\n    return d_x\n",
+        (0.5,), (0.0,), 0.0,
+    )  # fmt: skip
+    freq = inclusion_frequency(chosen, [chosen, one_term])["x"]
+    assert freq["p * u"] == 1.0
+    assert all(share == 0.5 for t, share in freq.items() if t != "p * u")
