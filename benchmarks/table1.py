@@ -521,6 +521,7 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     """
     import jax
 
+    from jaxdmd.pipeline import Judge
     from jaxdmd.problems import ae_problem, de_problem
     from jaxdmd.refine import (
         model_states,
@@ -560,11 +561,13 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
         "de_params_fit": named(ORACLE_DE_PARAMS, de.params),
         "de_nmse": named(STATES, de.losses),
     }
+    judge = Judge(train, config.selection)  # a refit is kept if it simulates no worse
     if config.refit_window:
-        de, refit_nmse = refit_integral(
+        refitted, refit_nmse = refit_integral(
             de, train, config.refit_window, jax.random.fold_in(de_key, 9)
         )
         info["de_refit"] = {"window_s": config.refit_window, "nmse": named(STATES, refit_nmse)}
+        de = judge.better(de, refitted, info["de_refit"])
     info["de_params"] = named(ORACLE_DE_PARAMS, de.params)
 
     estimates = None
@@ -585,11 +588,13 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     info["ae_params_fit"] = named(ORACLE_AE_PARAMS, ae.params)
     info["ae_nmse"] = named(ORACLE_AE_TARGETS, ae.losses)
     if estimates is not None and config.ae_bias_correction:
-        ae, info["ae_bias_compensated"] = refit_bias_compensated(ae, estimates)
+        refitted, info["ae_bias_compensated"] = refit_bias_compensated(ae, estimates)
+        ae = judge.better(ae, refitted, info["ae_bias_compensated"], de=de)
         info["ae_params_bias_compensated"] = named(ORACLE_AE_PARAMS, ae.params)
     if estimates is not None and estimates[0].from_model and config.ae_joint:
         try:
-            ae, joint = refit_joint(de, ae, train, estimates, max_steps=config.ae_joint_steps)
+            refitted, joint = refit_joint(de, ae, train, estimates, max_steps=config.ae_joint_steps)
+            ae = judge.better(ae, refitted, joint, de=de)
         except (ValueError, np.linalg.LinAlgError) as err:
             joint = {"kept": f"the joint refit failed: {err}"}
         info["ae_joint_refit"] = joint

@@ -60,6 +60,7 @@ from jaxdmd.select import (
 __all__ = [
     "Discovery",
     "DiscoveryConfig",
+    "Judge",
     "Observer",
     "OfflineFactory",
     "ProposerFactory",
@@ -604,7 +605,7 @@ def discover(
                 "DE equations chosen by simulation: "
                 + ", ".join(f"d{t}/dt" for t in selection["changed"])  # type: ignore[union-attr]
             )
-    judge = _Judge(train, config.selection)
+    judge = Judge(train, config.selection)
     refit = None
     if config.refit_window:
         refitted, refit_nmse = refit_integral(
@@ -694,7 +695,7 @@ def discover(
     return result
 
 
-class _Judge:
+class Judge:
     """Keeps a refit only if the model simulates the training recordings at least as well
     with it (:func:`jaxdmd.select.simulation_nrmse`: the state equations with the measured
     algebraic variables played in, or, for algebraic equations, the closed model). A refit is
@@ -728,7 +729,7 @@ def _closed_selection(
     ae: Equations,
     train: Sequence[Dataset],
     config: DiscoveryConfig,
-    judge: _Judge,
+    judge: Judge,
     de_key: jax.Array,
     report: dict[str, Any],
 ) -> Equations:
