@@ -310,31 +310,39 @@ def _single_errors(
     ]  # fmt: skip
     if not usable:
         return errors
-    copies = [f"{target}_c{i}" for _, i in usable]
-    renamed = [
-        _renamed(lines[i], target, name) for (_, i), name in zip(usable, copies, strict=True)
-    ]
-    used = set().union(*(line.variables() for line in renamed))
-    played = [a for a in state.contract.arguments if a in used and a != target]
-    source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in usable])
-    try:
-        program = interp.lower(source, n_outputs=len(usable))
-    except interp.LoweringError:
-        return errors
     folds = params.shape[1]
-    rows = np.concatenate(
-        [params[c, :, : max(compiled[c][1].n_params, lines[i].n_params)] for c, i in usable],
-        axis=1,
-    )  # [folds, sum of the lines' parameters], in the assembled order
-    rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
-    sim = simulate_host(
-        program, copies, rows, recordings, channels=[target] * len(copies),
-        substeps=config.substeps, blowup=config.blowup,
-    )  # fmt: skip
-    measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])[:, None]
-    err = _nrmse(sim, np.broadcast_to(measured, sim.shape))  # [B, lines]
-    for (_, i), e in zip(usable, err.mean(axis=0), strict=True):
-        errors[i] = float(e)
+
+    def simulate(group: list[tuple[int, int]]) -> None:
+        """Simulate a group of lines in one program; halve the group if it is too large."""
+        copies = [f"{target}_c{i}" for _, i in group]
+        renamed = [
+            _renamed(lines[i], target, name) for (_, i), name in zip(group, copies, strict=True)
+        ]
+        used = set().union(*(line.variables() for line in renamed))
+        played = [a for a in state.contract.arguments if a in used and a != target]
+        source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in group])
+        try:
+            program = interp.lower(source, n_outputs=len(group))
+        except (interp.LoweringError, ValueError):
+            if len(group) > 1:
+                simulate(group[: len(group) // 2])
+                simulate(group[len(group) // 2 :])
+            return
+        rows = np.concatenate(
+            [params[c, :, : max(compiled[c][1].n_params, lines[i].n_params)] for c, i in group],
+            axis=1,
+        )  # [folds, sum of the lines' parameters], in the assembled order
+        rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
+        sim = simulate_host(
+            program, copies, rows, recordings, channels=[target] * len(copies),
+            substeps=config.substeps, blowup=config.blowup,
+        )  # fmt: skip
+        measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])[:, None]
+        err = _nrmse(sim, np.broadcast_to(measured, sim.shape))  # [B, lines]
+        for (_, i), e in zip(group, err.mean(axis=0), strict=True):
+            errors[i] = float(e)
+
+    simulate(usable)
     return errors
 
 
@@ -578,7 +586,7 @@ def select_closed(
         source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
         try:
             program = interp.lower(source, n_outputs=len(lines))
-        except interp.LoweringError:
+        except (interp.LoweringError, ValueError):
             return float("inf")
         b = len(recordings)
         flat = np.concatenate([*ps, np.zeros(1)])[None]
