@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxdmd import skeleton as sk
+from jaxdmd import whitelist as wl
 
 __all__ = [
     "OPCODES", "RULES", "LoweringError", "Program", "evaluate_numpy", "lower", "program_of", "run",
@@ -188,7 +188,7 @@ class _Lowerer:
         return self.emit(name, left, self.expr(right_node))
 
     def power(self, base: int, exponent: ast.expr) -> int:
-        value = sk._fold(exponent)
+        value = wl.fold(exponent)
         if value is None:  # p[i] or -p[i]: a trainable exponent
             return self.emit("pow", base, self.expr(exponent))
         if isinstance(value, int) and not isinstance(value, bool):
@@ -222,19 +222,19 @@ class _Lowerer:
         if isinstance(node, ast.Name):
             if node.id in self.env:
                 return self.env[node.id]
-            if node.id in sk._BARE_CONSTANTS:
-                return self.const(sk._CONSTANTS[node.id])
+            if node.id in wl.BARE_CONSTANTS:
+                return self.const(wl.CONSTANTS[node.id])
             raise LoweringError(f"name {node.id}")
         if isinstance(node, ast.Attribute):
-            name = sk._math_name(node)
-            if name in sk._CONSTANTS:
-                return self.const(sk._CONSTANTS[name])
+            name = wl.math_name(node)
+            if name in wl.CONSTANTS:
+                return self.const(wl.CONSTANTS[name])
             raise LoweringError("attribute")
         if isinstance(node, ast.Subscript):
-            if not sk._is_param(node):
+            if not wl.is_param(node):
                 raise LoweringError("subscript")
             index = node.slice.value  # type: ignore[attr-defined]
-            if not isinstance(index, int) or not 0 <= index < sk.MAX_PARAMS:
+            if not isinstance(index, int) or not 0 <= index < wl.MAX_PARAMS:
                 raise LoweringError("parameter index")
             self.n_params = max(self.n_params, index + 1)
             return self.emit("param", index)
@@ -262,11 +262,11 @@ class _Lowerer:
             return self.emit("where", test, body, orelse)
         if isinstance(node, ast.Call):
             func = node.func
-            name = func.id if isinstance(func, ast.Name) else sk._math_name(func)
-            name = sk.ALIASES.get(name, name) if name is not None else None
-            if name not in sk.FUNCTIONS or node.keywords:
+            name = func.id if isinstance(func, ast.Name) else wl.math_name(func)
+            name = wl.ALIASES.get(name, name) if name is not None else None
+            if name not in wl.FUNCTIONS or node.keywords:
                 raise LoweringError("call")
-            if len(node.args) != sk.FUNCTIONS[name][1]:
+            if len(node.args) != wl.FUNCTIONS[name][1]:
                 raise LoweringError("arity")
             args = [self.expr(a) for a in node.args]
             return self.emit(name, *args)

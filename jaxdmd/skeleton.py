@@ -73,6 +73,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdmd import interp, whitelist
+from jaxdmd.whitelist import ALIASES, FUNCTIONS, MAX_PARAMS
+
 __all__ = [
     "ALIASES",
     "FUNCTIONS",
@@ -89,46 +92,18 @@ MAX_ANSWER_CHARS = 100_000  # a whole model answer
 MAX_SOURCE_CHARS = 4_000  # the extracted function
 MAX_NODES = 600  # syntax-tree nodes of the function, without Load/Store markers
 MAX_DEPTH = 50  # nesting of the syntax tree, counted from the module
-MAX_PARAMS = 64  # p[0] ... p[63]: five state equations of up to a dozen terms each
 MAX_LITERAL = 1e6  # largest magnitude of a numeric literal
 MAX_EXPONENT = 8  # largest magnitude of a constant exponent
 
-# The math functions a skeleton may call: name -> (jax.numpy function, number of arguments).
-FUNCTIONS: dict[str, tuple[Callable[..., Any], int]] = {
-    "sin": (jnp.sin, 1),
-    "cos": (jnp.cos, 1),
-    "tan": (jnp.tan, 1),
-    "exp": (jnp.exp, 1),
-    "log": (jnp.log, 1),
-    "sqrt": (jnp.sqrt, 1),
-    "tanh": (jnp.tanh, 1),
-    "sinh": (jnp.sinh, 1),
-    "cosh": (jnp.cosh, 1),
-    "arctan": (jnp.arctan, 1),
-    "arcsin": (jnp.arcsin, 1),
-    "arccos": (jnp.arccos, 1),
-    "arctan2": (jnp.arctan2, 2),
-    "abs": (jnp.abs, 1),
-    "sign": (jnp.sign, 1),
-    "square": (jnp.square, 1),
-    "maximum": (jnp.maximum, 2),
-    "minimum": (jnp.minimum, 2),
-    "where": (jnp.where, 3),
-    "clip": (jnp.clip, 3),
-}
-# Other spellings of the same functions (Python's math module, numpy).
-ALIASES: dict[str, str] = {
-    "atan": "arctan",
-    "asin": "arcsin",
-    "acos": "arccos",
-    "atan2": "arctan2",
-    "fabs": "abs",
-    "absolute": "abs",
-}
-_CONSTANTS: dict[str, float] = {"pi": math.pi, "e": math.e}  # as attributes: jnp.pi, math.e
-_BARE_CONSTANTS = frozenset({"pi"})  # as bare names (a bare `e` is too easily a variable)
-_NAMESPACES = frozenset({"jnp", "np", "numpy", "math"})
-_RESERVED = frozenset({"p", "jax", *_NAMESPACES, *FUNCTIONS, *ALIASES, *_BARE_CONSTANTS})
+# The vocabulary (FUNCTIONS, ALIASES, constants, namespaces, reserved names) lives in
+# jaxdmd.whitelist, which jaxdmd.interp reads too.
+_CONSTANTS = whitelist.CONSTANTS
+_BARE_CONSTANTS = whitelist.BARE_CONSTANTS
+_NAMESPACES = whitelist.NAMESPACES
+_RESERVED = whitelist.RESERVED
+_math_name = whitelist.math_name
+_is_param = whitelist.is_param
+_fold = whitelist.fold
 
 _OPERATORS: dict[type, str] = {
     ast.Add: "+",
@@ -536,60 +511,6 @@ def _describe(node: ast.AST) -> str:
 def _short(node: ast.AST) -> str:
     text = ast.unparse(node)
     return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _math_name(node: ast.expr) -> str | None:
-    """``jnp.X``, ``np.X``, ``numpy.X``, ``math.X`` or ``jax.numpy.X``: returns ``X``."""
-    if not isinstance(node, ast.Attribute):
-        return None
-    base = node.value
-    if isinstance(base, ast.Name) and base.id in _NAMESPACES:
-        return node.attr
-    if (
-        isinstance(base, ast.Attribute)
-        and base.attr == "numpy"
-        and isinstance(base.value, ast.Name)
-        and base.value.id == "jax"
-    ):
-        return node.attr
-    return None
-
-
-def _is_param(node: ast.expr) -> bool:
-    return (
-        isinstance(node, ast.Subscript)
-        and isinstance(node.value, ast.Name)
-        and node.value.id == "p"
-    )
-
-
-def _fold(node: ast.expr) -> float | int | None:
-    """The value of a constant made of numeric literals and + - * /, else None."""
-    if isinstance(node, ast.Constant):
-        value = node.value
-        ok = isinstance(value, int | float) and not isinstance(value, bool)
-        return value if ok else None
-    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
-        value = _fold(node.operand)
-        if value is None:
-            return None
-        return -value if isinstance(node.op, ast.USub) else value
-    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add | ast.Sub | ast.Mult | ast.Div):
-        left, right = _fold(node.left), _fold(node.right)
-        if left is None or right is None:
-            return None
-        left, right = float(left), float(right)  # never Python big-integer arithmetic
-        try:
-            if isinstance(node.op, ast.Add):
-                return left + right
-            if isinstance(node.op, ast.Sub):
-                return left - right
-            if isinstance(node.op, ast.Mult):
-                return left * right
-            return left / right
-        except (ZeroDivisionError, OverflowError):
-            return math.nan
-    return None
 
 
 class _Checker:
@@ -1029,8 +950,6 @@ def _build(
         {f"_k{i}": jax.device_put(np.asarray(v, dtype)) for i, v in enumerate(rewriter.constants)}
     )
     exec(code, namespace)  # defines the function only: no defaults, decorators or annotations
-    from jaxdmd import interp  # (circular import at module level)
-
     interp.register(namespace[fdef.name], source)  # the fitter runs it as a program instead
     return Skeleton(
         source=source,
