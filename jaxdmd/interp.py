@@ -46,8 +46,8 @@ from jax import lax
 from jaxdmd import whitelist as wl
 
 __all__ = [
-    "OPCODES", "RULES", "LoweringError", "Program", "evaluate_numpy", "lower", "program_of", "run",
-    "run_numpy",
+    "OPCODES", "RULES", "LoweringError", "Program", "ProgramTooLarge", "evaluate_numpy", "lower",
+    "lowered", "program_of", "run", "run_numpy",
 ]  # fmt: skip
 
 # opcode name -> number of register operands (var/param/const take an index or an immediate)
@@ -72,11 +72,17 @@ _UNARY_FUNCTIONS = (
 _ARITY.update({f: 1 for f in _UNARY_FUNCTIONS})
 _BINOPS = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div"}
 _CMPOPS = {ast.Lt: "lt", ast.LtE: "le", ast.Gt: "gt", ast.GtE: "ge", ast.Eq: "eq", ast.NotEq: "ne"}
-MAX_INSTRUCTIONS = 2048
+MAX_INSTRUCTIONS = 2048  # of a program after dead-code elimination
+MAX_SSA = 2 * MAX_INSTRUCTIONS  # of the SSA code while lowering (before it)
 
 
 class LoweringError(ValueError):
     """The source uses something the interpreter does not implement (the caller falls back)."""
+
+
+class ProgramTooLarge(LoweringError):
+    """The program exceeds ``MAX_SSA`` or ``MAX_INSTRUCTIONS`` (a size budget, checked while
+    lowering: no checked skeleton comes near it)."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -144,6 +150,8 @@ class _Lowerer:
         found = self.memo.get(key)
         if found is not None:
             return found
+        if len(self.code) >= MAX_SSA:
+            raise ProgramTooLarge(f"more than {MAX_SSA} SSA instructions")
         self.code.append(key)
         self.memo[key] = len(self.code) - 1
         return len(self.code) - 1
@@ -407,7 +415,7 @@ def _allocate(
                     live[x] = True
     order = [i for i in range(len(code)) if live[i]]
     if len(order) > MAX_INSTRUCTIONS:
-        raise LoweringError(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
+        raise ProgramTooLarge(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
 
     def in_register(x: int) -> bool:
         return code[x][0] not in _LEAVES
@@ -485,6 +493,11 @@ def _lower_cached(source: str) -> Program | None:
         return lower(source)
     except LoweringError:
         return None
+
+
+def lowered(source: str) -> Program | None:
+    """``lower(source)``, cached, or None where it raises :class:`LoweringError`."""
+    return _lower_cached(source)
 
 
 def program_of(skeleton: Any) -> Program | None:

@@ -49,8 +49,12 @@ functions (``jnp.sin`` -> ``_m_sin``), numeric literals become float arrays (so 
 integer or float arithmetic, hence no ``ZeroDivisionError``/``OverflowError`` or big-integer
 blow-up, can happen), exponents are folded to Python numbers, ``a if c else b`` becomes
 ``jnp.where(c, a, b)`` (both branches are evaluated), comparison chains become
-``jnp.logical_and`` of pairs and comparisons become floats (0.0 or 1.0, so that ``-(a < b)`` works
-as in Python), so that the function is pure and can be jitted, vmapped and differentiated.
+``jnp.logical_and`` of pairs (each operand still evaluated once: a compound middle operand is bound
+to a temporary) and comparisons become floats (0.0 or 1.0, so that ``-(a < b)`` works as in
+Python), so that the function is pure and can be jitted, vmapped and differentiated. The
+rewritten tree (``MAX_COMPILED_NODES``) and the interpreter's program (``interp.MAX_SSA``,
+``interp.MAX_INSTRUCTIONS``) have size budgets, checked after each transformation: compiling
+and evaluating a candidate costs at most a constant times its source (see ``sizes``).
 Code around the function in the answer (imports, calls, prints) is never compiled.
 
 Line numbers in errors count from the ``def`` line of the extracted function (line 1).
@@ -85,6 +89,7 @@ __all__ = [
     "compile_skeleton",
     "extract",
     "probe",
+    "sizes",
     "try_compile",
 ]
 
@@ -94,6 +99,13 @@ MAX_NODES = 600  # syntax-tree nodes of the function, without Load/Store markers
 MAX_DEPTH = 50  # nesting of the syntax tree, counted from the module
 MAX_LITERAL = 1e6  # largest magnitude of a numeric literal
 MAX_EXPONENT = 8  # largest magnitude of a constant exponent
+# Budgets after each transformation, so that compiling and evaluating a candidate cost at most a
+# constant times its (checked, bounded) size. The rewrite adds a fixed number of nodes per node
+# (a comparison pair: the call to logical_and, a temporary for a shared operand, the float
+# conversion), and lowering emits a bounded number of instructions per node (an integer power
+# at most 2 log2(MAX_EXPONENT) + 1); the measured worst cases lie far below these limits.
+MAX_COMPILED_NODES = 8 * MAX_NODES  # nodes of the rewritten tree that is compiled
+MAX_PROGRAM_INSTRUCTIONS = interp.MAX_INSTRUCTIONS  # instructions of the lowered program
 
 # The vocabulary (FUNCTIONS, ALIASES, constants, namespaces, reserved names) lives in
 # jaxdmd.whitelist, which jaxdmd.interp reads too.
@@ -858,6 +870,12 @@ class _Rewriter(ast.NodeTransformer):
 
     def __init__(self) -> None:
         self.constants: list[float] = []
+        self.temporaries = 0
+
+    def temporary(self) -> str:
+        """A fresh local name (a skeleton's own names never start with an underscore)."""
+        self.temporaries += 1
+        return f"_t{self.temporaries - 1}"
 
     def constant(self, value: float) -> ast.Name:
         self.constants.append(float(value))
@@ -898,11 +916,25 @@ class _Rewriter(ast.NodeTransformer):
         return ast.Call(func=ast.Name(id="_m_where", ctx=ast.Load()), args=args, keywords=[])
 
     def visit_Compare(self, node: ast.Compare) -> ast.AST:
+        # Python evaluates each operand of a chain once; so does the rewrite. A middle operand
+        # (the right side of one pair and the left of the next) that is more than a name or p[i]
+        # is bound to a temporary where it is first used (``a < (_t0 := b)``, then ``_t0 < c``):
+        # copying it instead would double the tree at every level of nested chains.
         operands = [self.visit(node.left), *(self.visit(c) for c in node.comparators)]
-        pairs: list[ast.expr] = [
-            ast.Compare(left=copy.deepcopy(a), ops=[op], comparators=[copy.deepcopy(b)])
-            for a, op, b in zip(operands[:-1], node.ops, operands[1:], strict=True)
-        ]
+        pairs: list[ast.expr] = []
+        left = operands[0]
+        for i, op in enumerate(node.ops):
+            right = operands[i + 1]
+            if i == len(node.ops) - 1:
+                shared = right
+            elif _is_leaf(right):
+                shared = copy.deepcopy(right)  # a name or p[i]: at most four nodes
+            else:
+                name = self.temporary()
+                right = ast.NamedExpr(target=ast.Name(id=name, ctx=ast.Store()), value=right)
+                shared = ast.Name(id=name, ctx=ast.Load())
+            pairs.append(ast.Compare(left=left, ops=[op], comparators=[right]))
+            left = shared
         result = pairs[0]
         for pair in pairs[1:]:
             func = ast.Name(id="_m_logical_and", ctx=ast.Load())
@@ -914,6 +946,12 @@ class _Rewriter(ast.NodeTransformer):
         value = node.value
         elements = value.elts if isinstance(value, ast.Tuple | ast.List) else [value]
         return ast.Return(value=ast.Tuple(elts=[self.visit(e) for e in elements], ctx=ast.Load()))
+
+
+def _is_leaf(node: ast.expr) -> bool:
+    """A rewritten operand that is cheap to repeat: a name (a variable, a local, a constant) or
+    ``p[i]``."""
+    return isinstance(node, ast.Name) or _is_param(node)
 
 
 def _as_float(x: jax.Array) -> jax.Array:
@@ -933,8 +971,7 @@ def _build(
         if isinstance(node, ast.Constant) and not isinstance(node.value, str)
     ) - sum(1 for statement in body for node in ast.walk(statement) if _is_param(node))
 
-    rewriter = _Rewriter()
-    compiled = rewriter.visit(copy.deepcopy(fdef))
+    compiled, constants = _rewrite(fdef)
     module = ast.fix_missing_locations(ast.Module(body=[compiled], type_ignores=[]))
     code = compile(module, filename=f"<skeleton {fdef.name}>", mode="exec")
     dtype = jnp.result_type(float)
@@ -947,9 +984,10 @@ def _build(
         {f"_m_{name}": jax.device_put(np.asarray(v, dtype)) for name, v in _CONSTANTS.items()}
     )
     namespace.update(
-        {f"_k{i}": jax.device_put(np.asarray(v, dtype)) for i, v in enumerate(rewriter.constants)}
+        {f"_k{i}": jax.device_put(np.asarray(v, dtype)) for i, v in enumerate(constants)}
     )
     exec(code, namespace)  # defines the function only: no defaults, decorators or annotations
+    _lower(source)
     interp.register(namespace[fdef.name], source)  # the fitter runs it as a program instead
     return Skeleton(
         source=source,
@@ -962,6 +1000,57 @@ def _build(
         requests=requests,
         fn=namespace[fdef.name],
     )
+
+
+def _rewrite(fdef: ast.FunctionDef) -> tuple[ast.FunctionDef, list[float]]:
+    """The tree that is compiled and its constants; checks ``MAX_COMPILED_NODES``."""
+    rewriter = _Rewriter()
+    compiled = rewriter.visit(copy.deepcopy(fdef))
+    _within_budget(_count_nodes([compiled]), MAX_COMPILED_NODES, "syntax nodes once rewritten")
+    return compiled, rewriter.constants
+
+
+def sizes(source: str, *, variables: Sequence[str], n_outputs: int | None = None) -> dict[str, int]:
+    """The size of a skeleton after each transformation (for tests of the budgets).
+
+    ``nodes``: the checked function's syntax nodes (without Load/Store markers); ``compiled``:
+    nodes of the rewritten tree that is compiled; ``instructions``: the instructions of the
+    interpreter's programs (main, features, one per output) together.
+    Raises ``SkeletonError`` where ``check`` or a budget rejects the source.
+    """
+    fdef = check(source, variables=variables, n_outputs=n_outputs)
+    compiled, _ = _rewrite(fdef)
+    program = interp.lowered(ast.unparse(fdef))
+    parts = [] if program is None else [program, *program.parts]
+    if program is not None and program.features is not None:
+        parts.append(program.features)
+    return {
+        "nodes": _count_nodes([fdef]),
+        "compiled": _count_nodes([compiled]),
+        "instructions": sum(part.length for part in parts),
+    }
+
+
+def _within_budget(size: int, limit: int, what: str) -> None:
+    if size > limit:
+        raise SkeletonError(f"the skeleton is too large: {size} {what} (limit {limit})")
+
+
+def _lower(source: str) -> None:
+    """Lower the checked source to the interpreter's program (cached for the fitter) and check
+    its size; a skeleton the interpreter cannot run otherwise is fitted through its function."""
+    program = interp.lowered(source)
+    if program is None:
+        try:
+            interp.lower(source)
+        except interp.ProgramTooLarge as error:
+            raise SkeletonError(f"the skeleton is too large once lowered: {error}") from None
+        except interp.LoweringError:
+            return
+        return
+    sizes = [program, *program.parts, *([program.features] if program.features else [])]
+    for part in sizes:
+        _within_budget(part.length, MAX_PROGRAM_INSTRUCTIONS, "instructions once lowered")
 
 
 def compile_skeleton(
