@@ -65,6 +65,7 @@ from __future__ import annotations
 import ast
 import copy
 import json
+import keyword
 import math
 import re
 import textwrap
@@ -483,7 +484,8 @@ def _library(variables: Sequence[str]) -> frozenset[str]:
         raise SkeletonError("variables must be a sequence of names, not a single string")
     names = []
     for name in variables:
-        if not isinstance(name, str) or not name.isidentifier() or name.startswith("_"):
+        invalid = not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name)
+        if invalid or name.startswith("_"):
             raise SkeletonError(f"the variable library has an invalid name {name!r}")
         if name in _RESERVED:
             raise SkeletonError(f"the variable library uses the reserved name {name!r}")
