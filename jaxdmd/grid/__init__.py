@@ -26,7 +26,15 @@ from jaxdmd.grid.protocol import (
     generator_dataset,
     paper_protocol,
 )
-from jaxdmd.grid.simulate import ALGEBRAIC, Fault, SimResult, SolverSettings, simulate
+from jaxdmd.grid.simulate import (
+    ALGEBRAIC,
+    Fault,
+    SimResult,
+    SolverSettings,
+    SynchronismWarning,
+    out_of_step,
+    simulate,
+)
 
 __all__ = [
     "ALGEBRAIC",
@@ -45,6 +53,7 @@ __all__ = [
     "ProtocolData",
     "SimResult",
     "SolverSettings",
+    "SynchronismWarning",
     "canonical_model_name",
     "case39",
     "generator_channels",
@@ -54,6 +63,7 @@ __all__ = [
     "nominal_operating_point",
     "operating_points",
     "opf_operating_point",
+    "out_of_step",
     "paper_protocol",
     "simulate",
 ]
