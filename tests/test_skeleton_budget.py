@@ -91,10 +91,10 @@ def test_nested_chains_with_compound_middles_evaluate_each_operand_once():
 
 
 def test_budgets_reject_oversized_rewrites(monkeypatch):
-    import jaxdmd.skeleton as skeleton
+    from jaxdmd.skeleton import compiling
 
     source = nested_chain(5)
-    monkeypatch.setattr(skeleton, "MAX_COMPILED_NODES", 20)
+    monkeypatch.setattr(compiling, "MAX_COMPILED_NODES", 20)
     error = try_compile(source, variables=["x", "y"], n_outputs=1)
     assert isinstance(error, SkeletonError)
     assert "too large" in error.reason and "rewritten" in error.reason
