@@ -75,14 +75,15 @@ RESERVED = frozenset({"p", "jax", *NAMESPACES, *FUNCTIONS, *ALIASES, *BARE_CONST
 def invalid_variable_name(name: object) -> str | None:
     """Why ``name`` cannot be a skeleton variable (a data channel), or None if it can.
 
-    A variable must be a Python identifier, not a keyword (``lambda``, ``None``), not start with
-    an underscore (``__class__``), and not be a reserved name (``p``, a namespace such as
-    ``jnp``, a math function such as ``sin``, or ``pi``).
+    A variable must be an ASCII Python identifier, not a keyword (``lambda``, ``None``), not
+    start with an underscore (``__class__``), and not be a reserved name (``p``, a namespace such
+    as ``jnp``, a math function such as ``sin``, or ``pi``).
     """
     if not isinstance(name, str):
         return f"it is a {type(name).__name__}, not a string"
     if not name.isidentifier() or not name.isascii():
-        return "it is not a Python identifier (letters, digits and _, not starting with a digit)"
+        # non-ASCII identifiers are NFKC-normalised by the parser: the code would use another name
+        return "it is not a Python identifier of ASCII letters, digits and _ (no leading digit)"
     if keyword.iskeyword(name):
         return "it is a Python keyword"
     if name.startswith("_"):
