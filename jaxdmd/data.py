@@ -20,6 +20,7 @@ import csv
 import itertools
 import json
 import math
+import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -28,14 +29,20 @@ import equinox as eqx
 import numpy as np
 from numpy.typing import ArrayLike
 
+from jaxdmd.whitelist import invalid_variable_name
+
 __all__ = [
     "DERIVATIVE_PREFIX",
     "METHODS",
+    "MIN_SAMPLES",
     "ROLES",
     "DataError",
+    "DataFileNotFound",
     "Dataset",
+    "check_compatible",
     "differentiate",
     "differentiation_error",
+    "load_many",
     "matched_filter",
     "samples",
     "segments",
@@ -53,13 +60,33 @@ Method = Literal["savgol", "adaptive", "spline", "gradient"]
 METHODS: tuple[str, ...] = ("savgol", "adaptive", "spline", "gradient")
 DEFAULT_METHOD: Method = "adaptive"
 
+MIN_SAMPLES = 5
+"""The fewest samples a recording may have: `differentiate` fits local cubics (four
+coefficients) and needs a fifth sample to smooth at all (its spline needs five too); with fewer,
+the derivative estimates and the fitted scores are meaningless (two samples give a constant
+derivative, whose variance of zero makes every normalised error NaN)."""
+
 _TIME_NAMES = ("t", "time", "time_s", "t_s")
 _FORMAT = "jaxdmd.dataset"
 _VERSION = 1
 
 
 class DataError(ValueError):
-    """Invalid data: the message names the column (or ``t``) and the problem."""
+    """Invalid data: the message names the column (or ``t``) and the problem (and the file, for
+    data read by `Dataset.load`)."""
+
+
+class DataFileNotFound(DataError, FileNotFoundError):
+    """`Dataset.load` of a path that does not exist (both a `DataError` and a
+    ``FileNotFoundError``)."""
+
+
+def _in_file(err: DataError, path: Path) -> DataError:
+    """``err`` with the file named at the start of its message (if it is not named yet)."""
+    message = str(err)
+    if str(path) in message:
+        return err
+    return type(err)(f"{path}: {message}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -370,16 +397,24 @@ def differentiation_error(
 # ------------------------------------------------------------------------------------------------
 
 
-def _check_time(t: ArrayLike, name: str = "t") -> np.ndarray:
-    """Sample times as float64 [n]: one-dimensional, finite, strictly increasing, n >= 2."""
+def _check_time(t: ArrayLike, name: str = "t", minimum: int = 2) -> np.ndarray:
+    """Sample times as float64 [n]: one-dimensional, finite, strictly increasing, n >= minimum."""
     try:
         arr = np.asarray(t, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise DataError(f"column {name!r} (time) is not numeric: {err}") from None
     if arr.ndim != 1:
         raise DataError(f"column {name!r} (time) must be one-dimensional, got shape {arr.shape}")
-    if arr.shape[0] < 2:
-        raise DataError(f"column {name!r} (time) needs at least 2 samples, got {arr.shape[0]}")
+    if arr.shape[0] < minimum:
+        why = (
+            " (the derivative estimators fit local cubics and need a fifth sample to smooth; "
+            "see jaxdmd.data.MIN_SAMPLES)"
+            if minimum == MIN_SAMPLES
+            else ""
+        )
+        raise DataError(
+            f"column {name!r} (time) needs at least {minimum} samples, got {arr.shape[0]}{why}"
+        )
     _check_finite(name, arr)
     step = np.diff(arr)
     if not np.all(step > 0):
@@ -420,6 +455,9 @@ def _check_column(name: str, x: ArrayLike, n: int, kind: str = "column") -> np.n
 
 
 def _check_name(name: Any) -> str:
+    """A channel name: it becomes a variable of the skeletons (spliced into their code), so it
+    must be a Python identifier that is not a keyword, does not start with an underscore, and is
+    not ``t``, ``p`` or a name the skeleton whitelist reserves (``sin``, ``jnp``, ``pi``)."""
     if not isinstance(name, str) or not name.strip():
         raise DataError(f"column names must be non-empty strings, got {name!r}")
     if name != name.strip():
@@ -429,7 +467,24 @@ def _check_name(name: Any) -> str:
             f"column {name!r}: the name 't' and names starting with {DERIVATIVE_PREFIX!r} are "
             "reserved (time and derivative columns)"
         )
+    why = invalid_variable_name(name)
+    if why is not None:
+        raise DataError(
+            f"column {name!r} cannot be a model variable: {why}; rename it (e.g. "
+            f"{_suggest(name)!r})"
+        )
     return name
+
+
+def _suggest(name: str) -> str:
+    """A valid channel name close to ``name`` (for error messages)."""
+    out = "".join(c if (c.isascii() and (c.isalnum() or c == "_")) else "_" for c in name)
+    out = out.lstrip("_") or "x"
+    if out[0].isdigit():
+        out = "x" + out
+    while invalid_variable_name(out) is not None:
+        out += "_x"
+    return out
 
 
 def _pairs(
@@ -486,6 +541,8 @@ class Dataset(eqx.Module):
         if len(set(self.names)) != c:
             dup = next(nm for nm in self.names if self.names.count(nm) > 1)
             raise DataError(f"column {dup!r} appears more than once (duplicate name)")
+        for name in self.names:
+            _check_name(name)
         for name, role in zip(self.names, self.roles, strict=True):
             if role not in ROLES:
                 raise DataError(f"column {name!r} has unknown role {role!r}; roles are {ROLES}")
@@ -529,7 +586,7 @@ class Dataset(eqx.Module):
         Raises:
             DataError: naming the column and the problem.
         """
-        tt = _check_time(t)
+        tt = _check_time(t, minimum=MIN_SAMPLES)
         n = tt.shape[0]
         pairs = _pairs(channels, "channels")
         names = tuple(_check_name(name) for name, _ in pairs)
@@ -889,11 +946,20 @@ class Dataset(eqx.Module):
         """
         path = Path(path)
         if not path.exists():
-            raise FileNotFoundError(path)
-        if path.suffix == ".npz":
-            return _load_npz(path, roles, units, events, label)
-        if path.suffix == ".csv":
-            return _load_csv(path, roles, units, events, label, diff_kw)
+            raise DataFileNotFound(f"{path}: not found (no such data file)")
+        if path.is_dir():
+            raise DataError(f"{path}: is a directory, not a data file (.npz or .csv)")
+        try:
+            if path.suffix == ".npz":
+                return _load_npz(path, roles, units, events, label)
+            if path.suffix == ".csv":
+                return _load_csv(path, roles, units, events, label, diff_kw)
+        except DataError as err:
+            raise _in_file(err, path) from None
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as err:
+            # unreadable or malformed files (a damaged .npz, bad metadata): a DataError too
+            what = type(err).__name__
+            raise DataError(f"{path}: cannot be read as a jaxdmd dataset ({what}: {err})") from None
         raise DataError(f"load: unknown file type {path.suffix!r} of {path}; use .npz or .csv")
 
 
@@ -1045,6 +1111,62 @@ def _load_csv(
         label=str(label),
         **diff_kw,
     )
+
+
+def check_compatible(
+    datasets: Sequence[Dataset], paths: Sequence[str | Path] | None = None
+) -> None:
+    """Raise `DataError` unless the recordings can be fitted together.
+
+    They must have the same channels in the same order, with the same roles, and the same units
+    where both give one. Their lengths, sampling rates (even non-uniform grids) and events may
+    differ: the pipeline concatenates the samples and gives every recording its own estimator
+    and integration operators. The message names both recordings: ``paths`` (the files they were
+    read from) if given, else their labels.
+    """
+    datasets = list(datasets)
+    if paths is not None and len(paths) != len(datasets):
+        raise ValueError(f"{len(paths)} paths for {len(datasets)} datasets")
+
+    def where(i: int) -> str:
+        if paths is not None:
+            return str(paths[i])
+        return repr(datasets[i].label) if datasets[i].label else f"recording {i}"
+
+    if not datasets:
+        return
+    first = datasets[0]
+    for i, ds in enumerate(datasets[1:], start=1):
+        if ds.names != first.names:
+            missing = [nm for nm in first.names if nm not in ds.names]
+            extra = [nm for nm in ds.names if nm not in first.names]
+            parts = [f"lacks {missing}"] if missing else []
+            parts += [f"has the extra channels {extra}"] if extra else []
+            what = " and ".join(parts) or (
+                f"orders them differently ({list(ds.names)} vs {list(first.names)})"
+            )
+            raise DataError(
+                f"{where(i)}: its channels differ from those of {where(0)}: it {what}; "
+                "recordings fitted together need the same channels"
+            )
+        for nm, r0, r1, u0, u1 in zip(
+            first.names, first.roles, ds.roles, first.units, ds.units, strict=True
+        ):
+            if r0 != r1:
+                raise DataError(
+                    f"{where(i)}: column {nm!r} has the role {r1!r}, but {r0!r} in {where(0)}"
+                )
+            if u0 and u1 and u0 != u1:
+                raise DataError(
+                    f"{where(i)}: column {nm!r} is in {u1!r}, but in {u0!r} in {where(0)}"
+                )
+
+
+def load_many(paths: Sequence[str | Path], **kw: Any) -> list[Dataset]:
+    """`Dataset.load` every path (errors name the file), then `check_compatible` them."""
+    datasets = [Dataset.load(p, **kw) for p in paths]
+    check_compatible(datasets, paths)
+    return datasets
 
 
 def stack_samples(datasets: Sequence[Dataset], names: Sequence[str]) -> dict[str, np.ndarray]:

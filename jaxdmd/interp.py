@@ -43,11 +43,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxdmd import skeleton as sk
+from jaxdmd import whitelist as wl
 
 __all__ = [
-    "OPCODES", "RULES", "LoweringError", "Program", "evaluate_numpy", "lower", "program_of", "run",
-    "run_numpy",
+    "OPCODES", "RULES", "LoweringError", "Program", "ProgramTooLarge", "evaluate_numpy", "lower",
+    "lowered", "program_of", "run", "run_numpy",
 ]  # fmt: skip
 
 # opcode name -> number of register operands (var/param/const take an index or an immediate)
@@ -72,11 +72,17 @@ _UNARY_FUNCTIONS = (
 _ARITY.update({f: 1 for f in _UNARY_FUNCTIONS})
 _BINOPS = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div"}
 _CMPOPS = {ast.Lt: "lt", ast.LtE: "le", ast.Gt: "gt", ast.GtE: "ge", ast.Eq: "eq", ast.NotEq: "ne"}
-MAX_INSTRUCTIONS = 2048
+MAX_INSTRUCTIONS = 2048  # of a program after dead-code elimination
+MAX_SSA = 2 * MAX_INSTRUCTIONS  # of the SSA code while lowering (before it)
 
 
 class LoweringError(ValueError):
     """The source uses something the interpreter does not implement (the caller falls back)."""
+
+
+class ProgramTooLarge(LoweringError):
+    """The program exceeds ``MAX_SSA`` or ``MAX_INSTRUCTIONS`` (a size budget, checked while
+    lowering: no checked skeleton comes near it)."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -144,6 +150,8 @@ class _Lowerer:
         found = self.memo.get(key)
         if found is not None:
             return found
+        if len(self.code) >= MAX_SSA:
+            raise ProgramTooLarge(f"more than {MAX_SSA} SSA instructions")
         self.code.append(key)
         self.memo[key] = len(self.code) - 1
         return len(self.code) - 1
@@ -188,7 +196,7 @@ class _Lowerer:
         return self.emit(name, left, self.expr(right_node))
 
     def power(self, base: int, exponent: ast.expr) -> int:
-        value = sk._fold(exponent)
+        value = wl.fold(exponent)
         if value is None:  # p[i] or -p[i]: a trainable exponent
             return self.emit("pow", base, self.expr(exponent))
         if isinstance(value, int) and not isinstance(value, bool):
@@ -222,19 +230,19 @@ class _Lowerer:
         if isinstance(node, ast.Name):
             if node.id in self.env:
                 return self.env[node.id]
-            if node.id in sk._BARE_CONSTANTS:
-                return self.const(sk._CONSTANTS[node.id])
+            if node.id in wl.BARE_CONSTANTS:
+                return self.const(wl.CONSTANTS[node.id])
             raise LoweringError(f"name {node.id}")
         if isinstance(node, ast.Attribute):
-            name = sk._math_name(node)
-            if name in sk._CONSTANTS:
-                return self.const(sk._CONSTANTS[name])
+            name = wl.math_name(node)
+            if name in wl.CONSTANTS:
+                return self.const(wl.CONSTANTS[name])
             raise LoweringError("attribute")
         if isinstance(node, ast.Subscript):
-            if not sk._is_param(node):
+            if not wl.is_param(node):
                 raise LoweringError("subscript")
             index = node.slice.value  # type: ignore[attr-defined]
-            if not isinstance(index, int) or not 0 <= index < sk.MAX_PARAMS:
+            if not isinstance(index, int) or not 0 <= index < wl.MAX_PARAMS:
                 raise LoweringError("parameter index")
             self.n_params = max(self.n_params, index + 1)
             return self.emit("param", index)
@@ -262,11 +270,11 @@ class _Lowerer:
             return self.emit("where", test, body, orelse)
         if isinstance(node, ast.Call):
             func = node.func
-            name = func.id if isinstance(func, ast.Name) else sk._math_name(func)
-            name = sk.ALIASES.get(name, name) if name is not None else None
-            if name not in sk.FUNCTIONS or node.keywords:
+            name = func.id if isinstance(func, ast.Name) else wl.math_name(func)
+            name = wl.ALIASES.get(name, name) if name is not None else None
+            if name not in wl.FUNCTIONS or node.keywords:
                 raise LoweringError("call")
-            if len(node.args) != sk.FUNCTIONS[name][1]:
+            if len(node.args) != wl.FUNCTIONS[name][1]:
                 raise LoweringError("arity")
             args = [self.expr(a) for a in node.args]
             return self.emit(name, *args)
@@ -407,7 +415,7 @@ def _allocate(
                     live[x] = True
     order = [i for i in range(len(code)) if live[i]]
     if len(order) > MAX_INSTRUCTIONS:
-        raise LoweringError(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
+        raise ProgramTooLarge(f"{len(order)} instructions (limit {MAX_INSTRUCTIONS})")
 
     def in_register(x: int) -> bool:
         return code[x][0] not in _LEAVES
@@ -485,6 +493,11 @@ def _lower_cached(source: str) -> Program | None:
         return lower(source)
     except LoweringError:
         return None
+
+
+def lowered(source: str) -> Program | None:
+    """``lower(source)``, cached, or None where it raises :class:`LoweringError`."""
+    return _lower_cached(source)
 
 
 def program_of(skeleton: Any) -> Program | None:

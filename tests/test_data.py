@@ -262,7 +262,7 @@ def test_csv_errors(tmp_path):
     path = tmp_path / "x.csv"
     side = tmp_path / "x.csv.json"
     side.write_text(json.dumps({"roles": {"a": "state", "b": "input"}}))
-    rows = [[0.0, 1.0, 2.0], [0.1, 1.1, 2.0], [0.2, 1.3, 2.0]]
+    rows = [[0.0, 1.0, 2.0], [0.1, 1.1, 2.0], [0.2, 1.3, 2.0], [0.3, 1.6, 2.0], [0.4, 2.0, 2.0]]
 
     write_csv(path, ["a", "b", "c"], rows)
     with pytest.raises(DataError, match="no time column"):

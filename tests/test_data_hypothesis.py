@@ -8,9 +8,11 @@ from hypothesis import strategies as st
 
 import jaxdmd  # noqa: F401
 from jaxdmd.data import ROLES, DataError, Dataset
+from jaxdmd.whitelist import invalid_variable_name
 
+# valid channel names: identifiers a skeleton can use (not p, sin, jnp, keywords ...)
 NAMES = st.from_regex(r"[A-Za-z][A-Za-z0-9_]{0,7}", fullmatch=True).filter(
-    lambda s: s.lower() not in ("t", "time", "time_s", "t_s")
+    lambda s: s.lower() not in ("t", "time", "time_s", "t_s") and invalid_variable_name(s) is None
 )
 
 

@@ -7,6 +7,7 @@ import contextlib
 import io
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -18,10 +19,12 @@ from jaxdmd.grid import (
     Fault,
     Governor,
     MachineModel,
+    SynchronismWarning,
     case39,
     machine_params,
     nominal_operating_point,
     operating_points,
+    out_of_step,
     paper_protocol,
     simulate,
 )
@@ -164,6 +167,36 @@ def test_all_machines_stay_in_step(which, request):
     w_coi = (w * M).sum(1, keepdims=True) / M.sum()
     assert np.abs(w - w_coi)[-100:].max() < 5e-3  # speeds stay together
     assert np.abs(w - 1).max() < 0.05
+    assert out_of_step(r) == [()]
+
+
+def test_protocol_data_are_stable(protocol):
+    assert protocol.stable
+    assert protocol.out_of_step == {"train": [(), ()], "test": [(), ()]}
+
+
+def test_loss_of_synchronism_is_detected_and_warned():
+    """The one-axis machines with saturation and the default AVR (K_A 20, T_A 0.2 s) slip poles
+    after the bus-15 fault (the set-up tests/test_diagnose.py used before): paper_protocol warns,
+    naming the recording, and says so in out_of_step; a slow, low-gain AVR keeps them in step."""
+    slipping = MachineModel(name="one-axis", saturation=(0.1, 0.3), exciter=Exciter())
+    with pytest.warns(SynchronismWarning, match=r"train point 0 \(seed 0, fault bus 15\): gen"):
+        data = paper_protocol(
+            n_train=1, n_test=0, seed=0, noise=0.0, model=slipping, generators=[31]
+        )
+    assert not data.stable and 31 in data.out_of_step["train"][0]
+    omega = np.asarray(data.train_result.state("omega"))
+    assert np.ptp(omega) > 0.1  # pu: the speeds run away
+    # simulate() warns by itself too
+    with pytest.warns(SynchronismWarning, match="fault at bus 15"):
+        simulate(data.train_points[0], slipping, 15)
+    steady = MachineModel(
+        name="one-axis", saturation=(0.1, 0.3), exciter=Exciter(K_A=10.0, T_A=0.5)
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SynchronismWarning)
+        data = paper_protocol(n_train=1, n_test=0, seed=0, noise=0.0, model=steady, generators=[31])
+    assert data.stable
 
 
 def test_derivative_matches_finite_differences(fault15):

@@ -462,3 +462,9 @@ def test_probe(data):
     bad_shapes = {**data, "omega": jnp.ones(7)}
     with pytest.raises(SkeletonError, match="incompatible shapes"):
         probe(sk, bad_shapes, jax.random.key(0))
+
+
+@pytest.mark.parametrize("name", ["lambda", "None", "class"])
+def test_keywords_are_not_variables(name):
+    error = try_compile(SWING, variables=[*LIBRARY, name], n_outputs=3)
+    assert isinstance(error, SkeletonError) and "invalid name" in error.reason

@@ -27,7 +27,15 @@ from jaxdmd.grid.protocol import (
     generator_dataset,
     paper_protocol,
 )
-from jaxdmd.grid.simulate import ALGEBRAIC, Fault, SimResult, SolverSettings, simulate
+from jaxdmd.grid.simulate import (
+    ALGEBRAIC,
+    Fault,
+    SimResult,
+    SolverSettings,
+    SynchronismWarning,
+    out_of_step,
+    simulate,
+)
 
 __all__ = [
     "ALGEBRAIC",
@@ -46,6 +54,7 @@ __all__ = [
     "ProtocolData",
     "SimResult",
     "SolverSettings",
+    "SynchronismWarning",
     "benchmark_protocol",
     "canonical_model_name",
     "case39",
@@ -56,6 +65,7 @@ __all__ = [
     "nominal_operating_point",
     "operating_points",
     "opf_operating_point",
+    "out_of_step",
     "paper_protocol",
     "simulate",
 ]

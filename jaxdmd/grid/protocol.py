@@ -13,7 +13,15 @@ import numpy as np
 from jaxdmd.grid.machines import STATE_LAYOUT, MachineModel, as_model
 from jaxdmd.grid.network import case39
 from jaxdmd.grid.operating import OperatingPoint, operating_points
-from jaxdmd.grid.simulate import DEFAULT_SETTINGS, Fault, SimResult, SolverSettings, simulate
+from jaxdmd.grid.simulate import (
+    DEFAULT_SETTINGS,
+    Fault,
+    SimResult,
+    SolverSettings,
+    out_of_step,
+    simulate,
+    warn_out_of_step,
+)
 
 ALGEBRAIC_CHANNELS = ("i_d", "i_q", "P_e", "Q_e", "v_d", "v_q")
 INPUT_CHANNELS = ("P_m", "v_f")
@@ -107,6 +115,9 @@ class ProtocolData:
         train_exact_derivatives: exact state derivatives of the training runs (dicts).
         train_points, test_points: the operating points (stacked).
         train_result, test_result: the raw batched simulations.
+        out_of_step: ``{"train": [...], "test": [...]}``, per run the generators (bus numbers)
+            that lose synchronism (see :func:`jaxdmd.grid.simulate.out_of_step`); empty tuples
+            for a stable run. :func:`paper_protocol` warns when any is not empty.
     """
 
     train: dict[int, list]
@@ -118,18 +129,28 @@ class ProtocolData:
     train_result: SimResult
     test_result: SimResult
     config: dict = field(default_factory=dict)
+    out_of_step: dict[str, list[tuple[int, ...]]] = field(default_factory=dict)
+
+    @property
+    def stable(self) -> bool:
+        """Whether every machine stays in step in every run."""
+        return not any(gens for runs in self.out_of_step.values() for gens in runs)
 
 
-def simulate_each(ops: OperatingPoint, model, fault, **kw) -> SimResult:
+def simulate_each(ops: OperatingPoint, model, fault, *, warn: bool = True, **kw) -> SimResult:
     """Simulate stacked operating points one by one and stack the results like a vmapped run.
 
     A loop, not ``vmap``: the batched diffrax solve gives no speed-up here (every run of a batch
     takes the union of all runs' steps) and, on jax 0.10.2's CPU runtime, the vmapped execution
     now and then never signals completion (a hang at 0 % CPU, about one run in four).
     """
-    runs = [simulate(ops[i], model, fault, **kw) for i in range(ops.Vm.shape[0])]
+    runs = [simulate(ops[i], model, fault, warn=False, **kw) for i in range(ops.Vm.shape[0])]
     stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *runs)
-    return eqx.tree_at(lambda r: r.t, stacked, runs[0].t)
+    result = eqx.tree_at(lambda r: r.t, stacked, runs[0].t)
+    if warn:
+        names = [f"run {i} (fault bus {result.fault.bus})" for i in range(len(runs))]
+        warn_out_of_step(out_of_step(result), names)
+    return result
 
 
 def paper_protocol(
@@ -153,7 +174,9 @@ def paper_protocol(
     dispatch; the first ``n_train`` for training) are drawn from ``seed``; every point is
     simulated for ``t_end`` s with a fault at ``train_fault`` (training) or ``test_fault``
     (test). The training states get Gaussian noise with sigma = ``noise`` x (max - min) of each
-    state signal over the record, from ``jax.random.key(seed)``; test data stay clean.
+    state signal over the record, from ``jax.random.key(seed)``; test data stay clean. A run in
+    which a machine loses synchronism gives a :class:`~jaxdmd.grid.simulate.SynchronismWarning`
+    naming the recordings and generators (and ``ProtocolData.out_of_step``).
 
     Args:
         generators: generator buses to return (default all ten, 30..39).
@@ -171,8 +194,16 @@ def paper_protocol(
     train_ops = ops[:n_train]
     test_ops = ops[n_train:]
     kw = dict(t_end=t_end, dt=dt, settings=settings)
-    r_train = simulate_each(train_ops, model, tf, **kw)
-    r_test = simulate_each(test_ops, model, sf, **kw) if n_test else None
+    r_train = simulate_each(train_ops, model, tf, warn=False, **kw)
+    r_test = simulate_each(test_ops, model, sf, warn=False, **kw) if n_test else None
+    slipped = {"train": out_of_step(r_train), "test": out_of_step(r_test) if n_test else []}
+    warn_out_of_step(
+        [*slipped["train"], *slipped["test"]],
+        [
+            *(f"train point {i} (seed {seed}, fault bus {tf.bus})" for i in range(n_train)),
+            *(f"test point {i} (seed {seed}, fault bus {sf.bus})" for i in range(n_test)),
+        ],
+    )
     noise_key = jax.random.fold_in(jax.random.key(seed), 0x5EED)
     train, clean, exact, test = {}, {}, {}, {}
     for gb in gens:
@@ -194,4 +225,6 @@ def paper_protocol(
         n_train=n_train, n_test=n_test, seed=seed, noise=noise, model=model,
         train_fault=tf, test_fault=sf, spread=spread, t_end=t_end, dt=dt,
     )  # fmt: skip
-    return ProtocolData(train, test, clean, exact, train_ops, test_ops, r_train, r_test, config)
+    return ProtocolData(
+        train, test, clean, exact, train_ops, test_ops, r_train, r_test, config, slipped
+    )

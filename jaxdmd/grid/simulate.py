@@ -18,6 +18,9 @@ algebraic channels and derivatives; the states are continuous).
 from __future__ import annotations
 
 import functools
+import math
+import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import diffrax as dfx
@@ -42,6 +45,17 @@ from jaxdmd.grid.network import case39, kron_reduce
 from jaxdmd.grid.operating import OperatingPoint
 
 ALGEBRAIC = ("i_d", "i_q", "P_e", "Q_e", "v_d", "v_q", "V", "theta", "P_m", "v_f")
+
+# Loss of synchronism: a machine whose rotor angle relative to the centre of inertia moves more
+# than pi from where it started has slipped a pole; a speed relative to the centre of inertia
+# beyond MAX_SPEED_DEVIATION pu (3 Hz at 60 Hz) does not happen in a run that stays in step
+# (the faults of the benchmark move the speeds by less than 0.01 pu).
+MAX_ANGLE_EXCURSION = math.pi
+MAX_SPEED_DEVIATION = 0.05
+
+
+class SynchronismWarning(RuntimeWarning):
+    """A simulated machine lost synchronism (its data are not those of a stable system)."""
 
 
 @dataclass(frozen=True)
@@ -238,6 +252,7 @@ def simulate(
     dt: float = 0.01,
     settings: SolverSettings = DEFAULT_SETTINGS,
     params: MachineParams | None = None,
+    warn: bool = True,
 ) -> SimResult:
     """Simulate the 39-bus system from operating point(s) ``op`` through a fault.
 
@@ -250,6 +265,8 @@ def simulate(
         dt: output sampling period in s.
         settings: solver and tolerances.
         params: override the parameter arrays built from ``model`` (advanced).
+        warn: warn (:class:`SynchronismWarning`) when a machine loses synchronism (see
+            :func:`out_of_step`).
 
     Returns:
         a :class:`SimResult`. One compilation serves every model and option (they are data);
@@ -269,4 +286,49 @@ def simulate(
     out = _run(
         op, p, fault=fault, t_end=float(t_end), dt=float(dt), settings=settings, batched=batched
     )
-    return SimResult(model=model, fault=fault, **out)
+    result = SimResult(model=model, fault=fault, **out)
+    if warn:
+        runs = out_of_step(result, inertia=p.M)
+        where = f"the fault at bus {fault.bus}" if fault is not None else "an undisturbed run"
+        warn_out_of_step(runs, [f"run {i}" for i in range(len(runs))] if batched else [where])
+    return result
+
+
+def out_of_step(result: SimResult, inertia: jax.Array | None = None) -> list[tuple[int, ...]]:
+    """The generators (bus numbers) that lose synchronism, one tuple per run (one for an
+    unbatched result).
+
+    A generator is out of step when its rotor angle relative to the centre of inertia (the
+    inertia-weighted mean angle) moves more than ``MAX_ANGLE_EXCURSION`` (pi) from its initial
+    value, or its speed relative to the centre of inertia exceeds ``MAX_SPEED_DEVIATION`` pu.
+    ``inertia``: the machines' M (default: those of ``result.model``).
+    """
+    M = np.asarray(machine_params(result.model).M if inertia is None else inertia, np.float64)
+    delta = np.asarray(result.state("delta"), np.float64)
+    omega = np.asarray(result.state("omega"), np.float64)
+    batched = delta.ndim == 3
+    if not batched:
+        delta, omega = delta[None], omega[None]
+    weights = M / M.sum()
+    rel = delta - (delta * weights).sum(-1, keepdims=True)  # [runs, T, 10]
+    excursion = np.abs(rel - rel[:, :1]).max(axis=1)
+    speed = np.abs(omega - (omega * weights).sum(-1, keepdims=True)).max(axis=1)
+    bad = ~(excursion <= MAX_ANGLE_EXCURSION) | ~(speed <= MAX_SPEED_DEVIATION)  # NaN: bad too
+    buses = case39().gen_bus_numbers
+    return [tuple(int(buses[g]) for g in np.flatnonzero(row)) for row in bad]
+
+
+def warn_out_of_step(runs: Sequence[tuple[int, ...]], names: Sequence[str]) -> None:
+    """Warn (:class:`SynchronismWarning`) naming the runs and generators out of step, if any."""
+    lost = [
+        f"{name}: generators {list(gens)}" for name, gens in zip(names, runs, strict=True) if gens
+    ]
+    if lost:
+        warnings.warn(
+            "loss of synchronism (a rotor angle moves more than pi from its start relative to "
+            f"the centre of inertia, or a speed deviates more than {MAX_SPEED_DEVIATION} pu): "
+            + "; ".join(lost)
+            + ". The data are not those of a stable system.",
+            SynchronismWarning,
+            stacklevel=3,
+        )
