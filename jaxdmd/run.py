@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 
 from jaxdmd import search
-from jaxdmd.data import Dataset
+from jaxdmd.data import load_many
 from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory, discover
 from jaxdmd.report import Progress
 from jaxdmd.search import SearchConfig
@@ -166,8 +166,8 @@ RUN_KEYS = (
 def recordings(args: argparse.Namespace, progress: Progress) -> tuple[list, list, dict]:
     """Training and test recordings (files, or the benchmark's simulation) and their source."""
     if args.data:
-        train = [Dataset.load(p) for p in args.data]
-        test = [Dataset.load(p) for p in args.test_data or []]
+        train = load_many(args.data)
+        test = load_many(args.test_data) if args.test_data else []
         return train, test, {"data": args.data, "test_data": args.test_data or []}
     from jaxdmd.grid import benchmark_protocol
 

@@ -184,7 +184,7 @@ def recording(dt: float, t_end: float, events: tuple[float, float], seed: int) -
 
 
 def test_recordings_of_different_lengths_and_rates_are_fitted_together():
-    from jaxdmd.discover import _groups, _stack, integral_operator, matched_operator
+    from jaxdmd.problems import _groups, _stack, integral_operator, matched_operator
 
     a, da = recording(0.01, 6.0, (1.0, 1.1), 0)
     b, db = recording(0.025, 4.0, (2.0, 2.15), 1)
