@@ -35,16 +35,13 @@ import itertools
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from jaxdmd import lines as ln
 from jaxdmd.prompts import Contract, PromptRequest, Variable
 from jaxdmd.proposers import Sample
-
-if TYPE_CHECKING:
-    from jaxdmd.search import Problem
+from jaxdmd.search import Problem
 
 _NUMPY = {
     "sin": np.sin,
