@@ -464,6 +464,17 @@ def _line_skeleton(contract: Contract, line: ln.Line) -> Skeleton:
     return compile_skeleton(source, variables=contract.arguments, n_outputs=1)
 
 
+def compiled_lines(contract: Contract, lines: Sequence[ln.Line]) -> list[tuple[int, Skeleton]]:
+    """Each line that compiles as a one-output skeleton, with its index in ``lines``."""
+    out = []
+    for i, line in enumerate(lines):
+        try:
+            out.append((i, _line_skeleton(contract, line)))
+        except SkeletonError:
+            continue
+    return out
+
+
 def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line]) -> np.ndarray:
     """Leave-one-recording-out NMSE of candidate lines for equation ``j``.
 
@@ -480,12 +491,7 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
     w = np.ones(n) if problem.weights is None else np.asarray(problem.weights, dtype=float)
     w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
     sse = np.full(len(lines), np.inf)
-    compiled: list[tuple[int, Skeleton]] = []
-    for i, line in enumerate(lines):
-        try:
-            compiled.append((i, _line_skeleton(state.contract, line)))
-        except SkeletonError:
-            continue
+    compiled = compiled_lines(state.contract, lines)
     if not compiled:
         return sse
     for i, _ in compiled:

@@ -44,7 +44,7 @@ from jaxdmd import interp
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
 from jaxdmd.fit import fit_batch
-from jaxdmd.search import Equations, SearchState, _compile, _line_skeleton, fit_problem
+from jaxdmd.search import Equations, SearchState, _compile, compiled_lines, fit_problem
 from jaxdmd.skeleton import Skeleton, SkeletonError
 
 __all__ = ["SelectionConfig", "select_by_simulation", "simulate_host"]
@@ -294,12 +294,7 @@ def _single_errors(
     renamed to its own copy, so one evaluation per step serves every candidate."""
     target = state.contract.targets[j]
     errors = np.full(len(lines), np.inf)
-    compiled: list[tuple[int, Skeleton]] = []
-    for i, line in enumerate(lines):
-        try:
-            compiled.append((i, _line_skeleton(state.contract, line)))
-        except SkeletonError:
-            continue
+    compiled = compiled_lines(state.contract, lines)
     if not compiled:
         return errors
     params = _fold_params(state, j, [sk for _, sk in compiled])  # [lines, folds, P]
@@ -529,12 +524,7 @@ def simulation_nrmse(
 def _fitted_lines(state: SearchState, j: int, lines: Sequence[ln.Line]) -> list[np.ndarray | None]:
     """Each line of equation ``j`` fitted on all of the loop's data (None where it fails)."""
     out: list[np.ndarray | None] = [None] * len(lines)
-    compiled = []
-    for i, line in enumerate(lines):
-        try:
-            compiled.append((i, _line_skeleton(state.contract, line)))
-        except SkeletonError:
-            continue
+    compiled = compiled_lines(state.contract, lines)
     if not compiled:
         return out
     params = _fold_params(state, j, [sk for _, sk in compiled], folds=False)
