@@ -589,10 +589,11 @@ def discover(
     # NMSEs of the integral form lie far below the derivatives': no absolute floor there
     floor = 0.0 if integral else 1e-4
     de_state = pool(de_states)
-    de = search.final_equations(de_state, floor=floor)
-    per_search = (
-        [search.final_equations(s, floor=floor) for s in de_states] if len(keys) > 1 else [de]
-    )
+    per_search = [search.final_equations(s, floor=floor) for s in de_states]
+    if len(de_states) > 1:  # the pool's choice; each search's own choice is a candidate
+        de = search.final_equations(de_state, floor=floor, include=per_search)
+    else:
+        de = per_search[0]
     de_seconds = time.perf_counter() - start
     selection = None
     if config.selection is not None:

@@ -527,6 +527,7 @@ def final_equations(
     floor: float = 1e-4,
     candidates: int = 15,
     prune: bool = True,
+    include: Sequence[Equations] = (),
 ) -> Equations:
     """The result: for each equation, the simplest line that generalises as well as the best.
 
@@ -541,7 +542,8 @@ def final_equations(
     the lowest CV score goes, while that score stays within the same bound), because the archive
     holds the lines the search wrote, not every subset of them. With one recording the training
     NMSE is the score and nothing is pruned. The kept lines are assembled into one skeleton and
-    refitted on all the data.
+    refitted on all the data. The lines of ``include`` (other results, e.g. the choices of
+    independent searches whose archives were pooled into ``state``) are candidates too.
     """
     entries = _distinct(e for isl in state.archive.islands for e in isl.entries)
     n_out = len(state.contract.targets)
@@ -557,6 +559,9 @@ def final_equations(
                 lines[line.text] = (e.losses[j], line)
             if len(lines) >= candidates:
                 break
+        for eq in include:  # e.g. each independent search's own choice, whatever its rank
+            line = ln.split_lines(eq.source)[0][j]
+            lines.setdefault(line.text, (eq.losses[j], line))
         options = list(lines.values())
         scores = (
             cross_validated_losses(state, j, [line for _, line in options])
