@@ -163,3 +163,24 @@ def test_example_diagnose_runs(tmp_path):
     assert "cause (missing term)" in done.stdout
     assert (tmp_path / "report" / "report.md").exists()
     assert len(list((tmp_path / "recordings").glob("*.csv.json"))) == 4
+
+
+def test_rejected_data_leave_no_output_folder(tmp_path):
+    """The data are read before anything is written: a rejected --data run creates nothing."""
+    bad = tmp_path / "short.csv"
+    bad.write_text("t,omega\n0,1\n0.1,1\n")
+    out = tmp_path / "never"
+    result = jaxdmd("--data", str(bad), "--out", str(out), *SMALL)
+    assert result.returncode == 2 and str(bad) in result.stderr
+    assert not out.exists()
+
+
+def test_resume_names_a_corrupt_checkpoint(whole_run, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(whole_run, copy)
+    (copy / "de_state.json").write_text('{"archive": ')  # cut off mid-write by hand
+    result = jaxdmd("--resume", str(copy))
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "de_state.json" in result.stderr and "Traceback" not in result.stderr

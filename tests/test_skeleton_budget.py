@@ -181,3 +181,39 @@ def test_random_skeletons_stay_linear_after_every_transformation(source):
     assert size["compiled"] <= COMPILED_PER_NODE * size["nodes"] <= MAX_COMPILED_NODES
     assert 0 < size["instructions"] <= INSTRUCTIONS_PER_NODE * size["nodes"]
     assert size["instructions"] <= interp.MAX_INSTRUCTIONS
+
+
+def test_a_round_of_bombs_is_dropped_within_its_budget():
+    """A proposer that answers only with the largest nested chains the whitelist lets through
+    cannot stall a round: every answer is compiled within the size budgets (or rejected) and
+    the round goes on."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdmd import search
+    from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.proposers import Sample
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(2, 200))
+    problem = search.Problem(
+        variables={"x": jnp.asarray(x), "y": jnp.asarray(y)},
+        targets=jnp.asarray(0.5 * x)[None],
+        target_names=("x",),
+        catalog=(Variable("y", "input"),),
+    )
+    contract = Contract(
+        loop="DE", targets=("x",), states=(Variable("x", "state"),),
+        library=(Variable("y", "input"),),
+    )  # fmt: skip
+    config = search.SearchConfig(n_islands=2, prompts_per_round=1, samples_per_prompt=8)
+    state = search.init(problem, contract, jax.random.key(0), config)
+    state, _ = search.prompts(state)
+    bombs = [
+        Sample(nested_chain(k).replace("def f(x, y, p)", "def equation(x, y, p)"), 0)
+        for k in (20, 30, 40, 45, 47, 48, 49, 60)
+    ]
+    start = time.perf_counter()
+    state, report = search.step(state, bombs)
+    assert time.perf_counter() - start < 60  # was unbounded: k = 20 alone took gigabytes
+    assert report.n_samples == len(bombs)
