@@ -475,6 +475,41 @@ def compiled_lines(contract: Contract, lines: Sequence[ln.Line]) -> list[tuple[i
     return out
 
 
+def sample_weights(problem: Problem, j: int) -> np.ndarray:
+    """The sample weights of equation ``j`` (ones if the problem has none), ``[N]``."""
+    n = problem.targets.shape[1]
+    w = np.ones(n) if problem.weights is None else np.asarray(problem.weights, dtype=float)
+    return np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
+
+
+def fold_fits(
+    state: SearchState, j: int, skeletons: Sequence[Skeleton], groups: np.ndarray
+) -> list[tuple[np.ndarray, list[FitResult]]]:
+    """Equation ``j``'s one-output ``skeletons`` fitted once per group of ``groups``, that
+    group's samples weighted out (with a single group: fitted on all samples). Returns, per
+    fold, the held-out mask and the fit results."""
+    problem = state.problem
+    target = np.asarray(problem.targets[j])
+    w = sample_weights(problem, j)
+    names = sorted({a for sk in skeletons for a in sk.arguments})
+    variables = {n: problem.variables[n] for n in names}
+    folds = np.unique(groups)
+    out = []
+    for fold, g in enumerate(folds):
+        held = groups == g
+        results = fit_batch(
+            skeletons,
+            variables,
+            target[None],
+            key=jax.random.fold_in(state.key, 1000 + fold),
+            config=state.config.fit,
+            weights=(w * ~held)[None] if len(folds) > 1 else w[None],
+            operator=problem.operator,
+        )
+        out.append((held, results))
+    return out
+
+
 def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line]) -> np.ndarray:
     """Leave-one-recording-out NMSE of candidate lines for equation ``j``.
 
@@ -484,12 +519,9 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
     that fails scores ``inf``.
     """
     problem = state.problem
-    groups = np.asarray(problem.groups)
     target = np.asarray(problem.targets[j])
     var = float(np.var(target)) or 1.0
-    n = target.shape[0]
-    w = np.ones(n) if problem.weights is None else np.asarray(problem.weights, dtype=float)
-    w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
+    w = sample_weights(problem, j)
     sse = np.full(len(lines), np.inf)
     compiled = compiled_lines(state.contract, lines)
     if not compiled:
@@ -499,17 +531,7 @@ def cross_validated_losses(state: SearchState, j: int, lines: Sequence[ln.Line])
     skeletons = [sk for _, sk in compiled]
     names = sorted({a for sk in skeletons for a in sk.arguments})
     variables = {n: problem.variables[n] for n in names}
-    for fold, g in enumerate(np.unique(groups)):
-        held = groups == g
-        results = fit_batch(
-            skeletons,
-            variables,
-            target[None],
-            key=jax.random.fold_in(state.key, 1000 + fold),
-            config=state.config.fit,
-            weights=(w * ~held)[None],
-            operator=problem.operator,
-        )
+    for held, results in fold_fits(state, j, skeletons, np.asarray(problem.groups)):
         for (i, sk), result in zip(compiled, results, strict=True):
             if result.error is not None:
                 sse[i] = np.inf

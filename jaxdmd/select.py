@@ -24,9 +24,8 @@ programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
 candidate rollouts cost seconds. Play-in is linear between samples and never across an event (a
 fault switched on or off), as :mod:`jaxdmd.rollout` plays signals in.
 
-With one recording, held-out time blocks replace held-out recordings (the recording is cut in
-``blocks`` pieces; a line is fitted on the other pieces and the held-out piece is simulated from
-its own first sample).
+With one recording there is nothing to hold out: each line is fitted on that recording and
+simulated on it (held-out time blocks are not implemented yet).
 """
 
 from __future__ import annotations
@@ -43,8 +42,14 @@ import numpy as np
 from jaxdmd import interp
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
-from jaxdmd.fit import fit_batch
-from jaxdmd.search import Equations, SearchState, _compile, compiled_lines, fit_problem
+from jaxdmd.search import (
+    Equations,
+    SearchState,
+    _compile,
+    compiled_lines,
+    fit_problem,
+    fold_fits,
+)
 from jaxdmd.skeleton import Skeleton, SkeletonError
 
 __all__ = ["SelectionConfig", "select_by_simulation", "simulate_host"]
@@ -204,27 +209,11 @@ def _fold_params(
 ) -> np.ndarray:
     """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``
     (with ``folds`` False: fitted on all recordings, ``[lines, 1, P_max]``)."""
-    problem = state.problem
     groups = _folds(state) if folds else np.zeros(state.problem.targets.shape[1], dtype=int)
-    target = np.asarray(problem.targets[j])
-    w = np.ones(target.shape[0]) if problem.weights is None else np.asarray(problem.weights)
-    w = np.broadcast_to(w, np.asarray(problem.targets).shape)[j] if w.ndim == 2 else w
-    names = sorted({a for sk in skeletons for a in sk.arguments})
-    variables = {n: problem.variables[n] for n in names}
-    n_folds = np.unique(groups)
+    fits = fold_fits(state, j, skeletons, groups)
     width = max(1, max(sk.n_params for sk in skeletons))
-    out = np.full((len(skeletons), len(n_folds), width), np.nan)
-    for f, g in enumerate(n_folds):
-        held = groups == g
-        results = fit_batch(
-            skeletons,
-            variables,
-            target[None],
-            key=jax.random.fold_in(state.key, 1000 + f),
-            config=state.config.fit,
-            weights=(w * ~held)[None] if len(n_folds) > 1 else w[None],
-            operator=problem.operator,
-        )
+    out = np.full((len(skeletons), len(fits), width), np.nan)
+    for f, (_, results) in enumerate(fits):
         for i, result in enumerate(results):
             if result.error is None:
                 p = np.asarray(result.params, dtype=float)
