@@ -1,4 +1,4 @@
-"""``python -m jaxdmd.run diagnose``: what a model gets wrong on a recording, why, and the
+"""``jaxdmd diagnose``: what a model gets wrong on a recording, why, and the
 extended model (arguments -> :func:`jaxdmd.diagnose.diagnose` -> report files)."""
 
 from __future__ import annotations
@@ -51,7 +51,9 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
         help="share of an equation's held-out residual one term must explain to call the "
         "model structurally wrong",
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of the extension search's PRNG key (0)"
+    )
 
 
 def run_diagnose(args: argparse.Namespace) -> int:

@@ -85,7 +85,11 @@ def plot_scores(path: Path, loops: Sequence[tuple[str, SearchState]]) -> None:
 
 
 class Progress:
-    """One line per round on the terminal (rich): a :class:`jaxdmd.pipeline.Observer`."""
+    """One line per round on the terminal (rich): a :class:`jaxdmd.pipeline.Observer`.
+
+    :meth:`log_to` copies every line printed through :meth:`print` or :meth:`message` (those
+    before the call included) as plain text into a file, e.g. the run folder's ``run.log``.
+    """
 
     def __init__(self, quiet: bool = False):
         import time
@@ -95,22 +99,60 @@ class Progress:
         self.console = Console(stderr=True, quiet=quiet, highlight=False)
         self._clock = time.perf_counter
         self.start = self._clock()
+        self._pending: list[tuple[str, bool]] = []  # printed before log_to: (text, markup)
+        self._log = None  # the log file's Console, once log_to is called
+        self._log_file = None
+
+    def print(self, text: str, markup: bool = True) -> None:
+        """Show ``text`` (rich markup unless ``markup`` is False) and copy it to the log."""
+        self.console.print(text, markup=markup)
+        if self._log is None:
+            self._pending.append((text, markup))
+        else:
+            self._log.print(text, markup=markup)
+            self._log_file.flush()
+
+    def log_to(self, path: str | Path) -> None:
+        """Append the lines shown so far, and from now on every line, to ``path`` (plain text)."""
+        import datetime
+
+        from rich.console import Console
+
+        self.close()
+        self._log_file = open(path, "a", encoding="utf-8")  # noqa: SIM115 (closed by close())
+        self._log = Console(
+            file=self._log_file, width=160, no_color=True, highlight=False, emoji=False
+        )
+        now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+        self._log.print(f"# jaxdmd, started {now}", markup=False)
+        for text, markup in self._pending:
+            self._log.print(text, markup=markup)
+        self._pending.clear()
+        self._log_file.flush()
+
+    def close(self) -> None:
+        """Close the log file (if any); later lines are shown only."""
+        if self._log_file is not None:
+            self._log_file.close()
+        self._log = self._log_file = None
 
     def message(self, text: str) -> None:
-        self.console.print(text)
+        self.print(text)
 
     def loop_started(self, name: str, state: SearchState) -> None:
         lib = ", ".join(state.contract.arguments)
-        self.console.print(
+        self.print(
             f"[bold]{name} loop[/bold]: targets {', '.join(state.contract.targets)}; "
             f"arguments {lib}; seed score {state.history[0]:.4g}"
         )
 
     def round(self, name: str, state: SearchState, report: RoundReport) -> None:
         dropped = sum(n for _, n in report.dropped)
+        # valid and dropped count the same candidates: the samples and the recombined one
+        total = report.n_samples + report.n_recombined
         line = (
             f"  {name} round {report.round:2d}  best {report.best_score:10.4g}  "
-            f"valid {report.n_valid:2d}/{report.n_samples:2d} (dropped {dropped})  "
+            f"valid {report.n_valid:2d}/{total:2d} (dropped {dropped})  "
             f"{self._clock() - self.start:6.1f}s"
         )
         if report.joined:
@@ -119,7 +161,7 @@ class Progress:
             line += f"  [yellow]not measured: {', '.join(report.missing)}[/yellow]"
         if report.done:
             line += f"  [bold]done: {report.stop_reason}[/bold]"
-        self.console.print(line)
+        self.print(line)
 
 
 def rollout_summary(scores: Sequence[dict]) -> dict:

@@ -1,10 +1,13 @@
-"""``python -m jaxdmd.run``: the command line (arguments -> config -> call -> files).
+"""``jaxdmd`` (also ``python -m jaxdmd``, ``python -m jaxdmd.run``): the command line
+(arguments -> config -> call -> files). Subcommands ``discover``, ``simulate``, ``diagnose``.
 
-With no arguments it runs the built-in benchmark (the paper's protocol on the IEEE 39-bus system,
-generator at bus 31) with the offline proposer: :func:`jaxdmd.pipeline.discover` (the DE loop,
-then the AE loop), and writes the discovered model, the score trajectories and ``summary.json``
-into the output folder (schema in ``docs/run.md``). Subcommands: ``simulate`` (write a benchmark
-dataset, :mod:`jaxdmd.grid.cli`) and ``diagnose`` (:mod:`jaxdmd.cli_diagnose`); see ``--help``.
+Without a subcommand it is ``discover``; with no arguments at all it runs the built-in benchmark
+(the paper's protocol on the IEEE 39-bus system, generator at bus 31) with the offline proposer:
+:func:`jaxdmd.pipeline.discover` (the DE loop, then the AE loop), and writes the discovered
+model, the score trajectories and ``summary.json`` into the output folder (schema in
+``docs/run.md``), with ``run.log`` (the progress lines). ``simulate`` writes a benchmark dataset
+(:mod:`jaxdmd.grid.cli`), ``diagnose`` explains a model's error (:mod:`jaxdmd.cli_diagnose`);
+see ``jaxdmd --help``.
 """
 
 from __future__ import annotations
@@ -27,21 +30,43 @@ from jaxdmd.search import SearchConfig
 DEFAULT_OUT = "runs/latest"
 
 
+COMMANDS = ("discover", "simulate", "diagnose")
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``jaxdmd`` parser: the subcommands ``discover``, ``simulate`` and ``diagnose``."""
     from jaxdmd.cli_diagnose import add_diagnose_arguments
     from jaxdmd.grid.cli import add_simulate_arguments
 
     parser = argparse.ArgumentParser(
-        prog="python -m jaxdmd.run",
-        description=(
-            "Discover the dynamic model of a power-system component from measured data. "
-            "Without a subcommand: discovery (DE loop, then AE loop); without --data, on the "
-            "built-in IEEE 39-bus benchmark with the offline proposer."
+        prog="jaxdmd",
+        description="Discover dynamic models of power-system generators from measured data.",
+        epilog=(
+            "Without a subcommand: discover (python -m jaxdmd.run [--out DIR ...] as before; "
+            "with no arguments at all, the built-in IEEE 39-bus benchmark). "
+            "'jaxdmd COMMAND --help' lists a command's options."
         ),
     )
-    add_discover_arguments(parser)
-    sub = parser.add_subparsers(dest="command", metavar="{simulate,diagnose}")
-    sim = sub.add_parser("simulate", help="simulate the IEEE 39-bus benchmark, write a dataset")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    disc = sub.add_parser(
+        "discover",
+        usage="%(prog)s [--out DIR] [--data FILE ...] [--test-data FILE ...] [options]\n"
+        "       %(prog)s --resume DIR",
+        help="discover a model from recordings (default: the built-in benchmark)",
+        description=(
+            "Discover the dynamic model of a power-system component from measured data: the DE "
+            "loop (state equations), then the AE loop (algebraic ones). Without --data, on the "
+            "built-in IEEE 39-bus benchmark with the offline proposer. Writes model.py, "
+            "equations.md, summary.json, run.log and plots into --out (docs/run.md)."
+        ),
+    )
+    add_discover_arguments(disc)
+    sim = sub.add_parser(
+        "simulate",
+        help="simulate the IEEE 39-bus benchmark, write a dataset",
+        description="Simulate a fault on the IEEE 39-bus system and write one generator's "
+        "recording (.npz, or .csv with a .json sidecar).",
+    )
     add_simulate_arguments(sim)
     diag = sub.add_parser(
         "diagnose",
@@ -56,12 +81,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def with_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` with ``discover`` put first when it names no subcommand (the old form:
+    ``python -m jaxdmd.run [--out DIR ...]``); top-level ``-h``/``--help`` are kept."""
+    argv = list(argv)
+    if argv and (argv[0] in COMMANDS or argv[0] in ("-h", "--help")):
+        return argv
+    return ["discover", *argv]
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """Parse a command line (default ``sys.argv[1:]``); no subcommand means ``discover``."""
+    return build_parser().parse_args(with_command(sys.argv[1:] if argv is None else argv))
+
+
 # fmt: off
 def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
     """The discovery options: what a user sets first, then the algorithm's internals."""
     g = parser.add_argument_group("discovery")
     add = g.add_argument
-    add("--out", default=None, help=f"output folder (default {DEFAULT_OUT})")
+    add("--out", metavar="DIR", default=None, help=f"output folder (default {DEFAULT_OUT})")
     add("--data", nargs="+", metavar="FILE",
         help="training recordings (.npz, or .csv with a .json sidecar); default: the benchmark")
     add("--test-data", nargs="+", metavar="FILE", help="held-out recordings")
@@ -77,11 +116,15 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         help="seed of the search's PRNG key (and of the benchmark's operating points and noise)")
     add("--skip-ae", action="store_true", help="run the DE loop only")
     add("--resume", metavar="DIR", help="continue the run saved in DIR")
+    from jaxdmd.proposers.llm import add_llm_arguments
+
+    add_llm_arguments(parser)
     g = parser.add_argument_group("advanced (the search and the refits; see docs/run.md)")
     add = g.add_argument
     add("--prompts", type=int, default=4, help="prompts per round")
     add("--samples", type=int, default=4, help="samples per prompt")
-    add("--islands", type=int, default=10, help="islands of the archive")
+    add("--islands", type=int, default=10,
+        help="islands of the archive: sub-populations of candidate models kept apart")
     add("--tau-c", type=float, default=0.2, help="cluster temperature")
     add("--tau-l", type=float, default=0.2, help="code-length temperature")
     add("--no-recombine", action="store_true",
@@ -107,9 +150,6 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
     add("--subset-ae", type=int, default=4, help="... and in the AE loop")
     add("--gamma", type=float, default=None,
         help="score threshold of stopping and extension (default: DiscoveryConfig's)")
-    from jaxdmd.proposers.llm import add_llm_arguments
-
-    add_llm_arguments(parser)
 # fmt: on
 
 
@@ -201,29 +241,33 @@ def run_discover(args: argparse.Namespace) -> int:
     if not args.resume:
         out.mkdir(parents=True, exist_ok=True)
         search.write_json_atomic(out / "run.json", {k: getattr(args, k) for k in RUN_KEYS})
-    result = discover(
-        train, test, config, proposer,
-        key=jax.random.key(args.seed), checkpoints=out, observer=progress,
-    )  # fmt: skip
-    report = dict(result.report)
-    settings = {k: getattr(args, k) for k in RUN_KEYS}
-    summary = {"source": source, "proposer": report.pop("proposer"), "settings": settings}
-    summary.update(report)
-    summary["data_wall_time_s"] = data_seconds
-    summary["wall_time_s"] = time.perf_counter() - t0
-    result.save(out, summary)
-    progress.console.print(f"\n[bold]Discovered model[/bold] (written to {out}/):")
-    for eq in (result.de, result.ae):
-        for k, v in (eq.readable() if eq is not None else {}).items():
-            progress.console.print(f"  {k} = {v}")
-    if test:
-        from jaxdmd.report import plot_trajectories, rollout_table
+    progress.log_to(out / "run.log")  # the lines shown so far too; a resumed run appends
+    try:
+        result = discover(
+            train, test, config, proposer,
+            key=jax.random.key(args.seed), checkpoints=out, observer=progress,
+        )  # fmt: skip
+        report = dict(result.report)
+        settings = {k: getattr(args, k) for k in RUN_KEYS}
+        summary = {"source": source, "proposer": report.pop("proposer"), "settings": settings}
+        summary.update(report)
+        summary["data_wall_time_s"] = data_seconds
+        summary["wall_time_s"] = time.perf_counter() - t0
+        result.save(out, summary)
+        progress.print(f"\n[bold]Discovered model[/bold] (written to {out}/):")
+        for eq in (result.de, result.ae):
+            for k, v in (eq.readable() if eq is not None else {}).items():
+                progress.print(f"  {k} = {v}", markup=False)
+        if test:
+            from jaxdmd.report import plot_trajectories, rollout_table
 
-        progress.console.print(f"\n[bold]Held-out rollouts[/bold] ({len(test)} recording(s)):")
-        progress.console.print(rollout_table(result.report["test"]), markup=False)
-        modes = ("de", "dae") if result.ae is not None else ("de",)
-        sims = {m.upper(): result.simulate(test[0], m) for m in modes}  # type: ignore[arg-type]
-        plot_trajectories(out / "trajectories.png", test[0], sims)
+            progress.print(f"\n[bold]Held-out rollouts[/bold] ({len(test)} recording(s)):")
+            progress.print(rollout_table(result.report["test"]), markup=False)
+            modes = ("de", "dae") if result.ae is not None else ("de",)
+            sims = {m.upper(): result.simulate(test[0], m) for m in modes}  # type: ignore[arg-type]
+            plot_trajectories(out / "trajectories.png", test[0], sims)
+    finally:
+        progress.close()
     return 0
 
 
@@ -233,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from jaxdmd.proposers.llm import LLMError
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     try:
         if args.command == "simulate":
             from jaxdmd.grid.cli import run_simulate

@@ -96,8 +96,8 @@ class RoundReport:
     """What one ``step`` did, for progress display and the run's summary."""
 
     round: int
-    n_samples: int
-    n_valid: int
+    n_samples: int  # the proposer's samples
+    n_valid: int  # candidates fitted and registered: of the samples and the recombined one
     dropped: tuple[tuple[str, int], ...]  # reason -> count
     best_score: float
     improved: bool
@@ -105,6 +105,7 @@ class RoundReport:
     missing: tuple[str, ...] = ()  # requested variables the data lacks
     done: bool = False
     stop_reason: str = ""
+    n_recombined: int = 0  # 1 when the recombination of the best lines was a candidate too
 
 
 class SearchState(eqx.Module):
@@ -281,10 +282,12 @@ def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, Ro
             continue
         seen.add(skeleton.source)
         candidates.append((skeleton, sample.island % state.config.n_islands))
+    n_recombined = 0
     if state.config.recombine:
         recombined = _recombined(state)
         if recombined is not None and recombined[0].source not in seen:
             candidates.append(recombined)
+            n_recombined = 1
 
     archive = state.archive
     best_before = arc.best(archive).score
@@ -317,6 +320,7 @@ def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, Ro
         missing=missing,
         done=state.done,
         stop_reason=state.stop_reason,
+        n_recombined=n_recombined,
     )
     return state, report
 

@@ -49,6 +49,8 @@ def test_run_writes_model_plot_and_summary(whole_run):
     model = (whole_run / "model.py").read_text()
     assert "def equation(" in model and "DE_PARAMS" in model
     compile(model, "model.py", "exec")  # the written module is valid Python
+    log = (whole_run / "run.log").read_text()  # the progress lines, as the terminal showed them
+    assert "DE round  1" in log and "Discovered model" in log and "[bold]" not in log
 
 
 def test_kill_and_resume_gives_the_same_model(whole_run, tmp_path):
@@ -184,3 +186,91 @@ def test_resume_names_a_corrupt_checkpoint(whole_run, tmp_path):
     result = jaxdmd("--resume", str(copy))
     assert result.returncode == 2, result.stderr[-2000:]
     assert "de_state.json" in result.stderr and "Traceback" not in result.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# the command's shape: subcommands, help, the old form (no running)
+
+
+def test_top_level_help_fits_one_screen():
+    result = subprocess.run(
+        [sys.executable, "-m", "jaxdmd", "--help"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert len(lines) <= 30, result.stdout
+    for command in ("discover", "simulate", "diagnose"):
+        assert any(line.split()[:1] == [command] for line in lines), result.stdout
+
+
+def test_discover_help_shows_user_options_before_the_advanced_ones(capsys):
+    from jaxdmd.run import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["discover", "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    assert len(text.split("\noptions:")[0].splitlines()) < 12  # a short usage, then the options
+    text = text[text.index("\noptions:") :]
+    assert text.index("--out") < text.index("--llm-model") < text.index("advanced")
+    assert text.index("advanced") < text.index("--islands")
+    assert "--model" not in text.replace("--llm-model", "")  # the hidden old spelling
+
+
+def test_every_option_has_help():
+    import argparse
+
+    from jaxdmd.run import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == {"discover", "simulate", "diagnose"}
+    for name, command in sub.choices.items():
+        for action in command._actions:
+            if action.option_strings and action.help != argparse.SUPPRESS:
+                assert action.help, f"{name} {action.option_strings[0]} has no help"
+
+
+def test_no_subcommand_means_discover_with_the_same_config():
+    from jaxdmd.run import config_from_args, parse_args
+
+    old = ["--out", "x", "--rounds", "3", "--islands", "3", "--skip-ae", "--no-weighted"]
+    a, b = parse_args(old), parse_args(["discover", *old])
+    assert a.command == b.command == "discover"
+    assert vars(a) == vars(b)
+    assert config_from_args(a) == config_from_args(b)
+    assert config_from_args(a).search.n_islands == 3 and not config_from_args(a).algebraic
+    default = parse_args([])  # python -m jaxdmd.run: the built-in benchmark
+    assert default.command == "discover" and default.data is None and default.out is None
+    assert config_from_args(default) == config_from_args(parse_args(["discover"]))
+
+
+def test_llm_model_and_machine_model_are_different_options():
+    from jaxdmd.run import parse_args
+
+    assert parse_args(["--llm-model", "qwen"]).llm_model == "qwen"
+    assert parse_args(["discover", "--model", "qwen"]).llm_model == "qwen"  # the old spelling
+    sim = parse_args(["simulate", "--out", "a.npz", "--model", "classical"])
+    assert sim.model == "classical" and not hasattr(sim, "llm_model")
+    diag = parse_args(["diagnose", "--data", "a.npz", "--model", "one-axis"])
+    assert diag.model == "one-axis"
+
+
+def test_progress_lines_go_to_the_log_as_plain_text(tmp_path):
+    from jaxdmd.report import Progress
+    from jaxdmd.search import RoundReport
+
+    progress = Progress(quiet=True)
+    progress.message("Simulating the benchmark...")  # before the folder exists
+    log = tmp_path / "run.log"
+    progress.log_to(log)
+    report = RoundReport(
+        round=1, n_samples=16, n_valid=17, dropped=(), best_score=-0.1, improved=True,
+        n_recombined=1, done=True, stop_reason="gamma reached",
+    )  # fmt: skip
+    progress.round("DE", None, report)  # type: ignore[arg-type]
+    progress.close()
+    text = log.read_text()
+    assert "Simulating the benchmark..." in text
+    assert "valid 17/17 (dropped 0)" in text  # the recombined candidate is counted in the total
+    assert "done: gamma reached" in text and "[bold]" not in text and "\x1b[" not in text

@@ -114,6 +114,8 @@ def test_step_is_pure_and_deterministic():
     assert state.iteration == 0 and a.iteration == 1  # the input state is unchanged
     # bad skeletons cost one candidate each, never the round
     assert sum(n for _, n in ra.dropped) >= 2 and ra.n_valid >= 1
+    # valid and dropped count the same candidates: the samples and the recombined one
+    assert ra.n_valid + sum(n for _, n in ra.dropped) == ra.n_samples + ra.n_recombined
 
 
 def test_resume_gives_the_same_result(tmp_path):

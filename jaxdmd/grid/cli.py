@@ -1,4 +1,4 @@
-"""``python -m jaxdmd.run simulate``: simulate the IEEE 39-bus benchmark and write a dataset."""
+"""``jaxdmd simulate``: simulate the IEEE 39-bus benchmark and write a dataset."""
 
 from __future__ import annotations
 
@@ -27,7 +27,10 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
         "--model", default="psat-5.1", help=f"machine model: {', '.join(MODEL_STATES)} (psat-5.1)"
     )
     g.add_argument("--damping", type=float, default=0.0, help="damping D, pu on 100 MVA (0)")
-    g.add_argument("--saturation", type=float, nargs=2, metavar=("S10", "S12"), default=None)
+    g.add_argument(
+        "--saturation", type=float, nargs=2, metavar=("S10", "S12"), default=None,
+        help="field saturation of e'_q: factors S(1.0) and S(1.2), each in [0, 1) (default none)",
+    )  # fmt: skip
     g.add_argument("--exciter", action="store_true", help="add the first-order AVR")
     g.add_argument("--governor", action="store_true", help="add the droop governor")
     g.add_argument("--noise", type=float, default=0.0, help="state noise, share of range (0)")

@@ -1,8 +1,10 @@
 """Command-line options of the language-model proposer, and the proposer they ask for.
 
-:func:`add_llm_arguments` adds the options (``--llm``, ``--model``, ``--api-key-env``,
-``--temperature``, ``--llm-timeout``, ``--llm-concurrency``, ``--cache``, ``--replay``) to a
-parser; :func:`proposer_from_args` turns the parsed options (and the environment) into an
+:func:`add_llm_arguments` adds the options (``--llm``, ``--llm-model`` (its old spelling
+``--model`` still works, hidden from the help: ``--model`` names the machine model in
+``simulate`` and ``diagnose``), ``--api-key-env``, ``--temperature``, ``--llm-timeout``,
+``--llm-concurrency``, ``--cache``, ``--replay``) to a parser; :func:`proposer_from_args`
+turns the parsed options (and the environment) into an
 :class:`~jaxdmd.proposers.llm.LLMProposer`, a :class:`~jaxdmd.proposers.llm.ReplayProposer` or
 None (the offline proposer). Both are also importable from :mod:`jaxdmd.proposers.llm`.
 """
@@ -42,11 +44,13 @@ def add_llm_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
         help=f"endpoint base URL, e.g. https://api.deepseek.com/v1 (default: ${ENV_BASE_URL})",
     )
     group.add_argument(
-        "--model",
+        "--llm-model",
         metavar="NAME",
         default=None,
-        help=f"model name, e.g. deepseek-chat (default: ${ENV_MODEL})",
+        help=f"language model name, e.g. deepseek-chat (default: ${ENV_MODEL})",
     )
+    # the old spelling, kept working but hidden: --model names the machine model elsewhere
+    group.add_argument("--model", dest="llm_model", default=None, help=argparse.SUPPRESS)
     group.add_argument(
         "--api-key-env",
         metavar="VAR",
@@ -109,7 +113,9 @@ def proposer_from_args(
     replay = getattr(ns, "replay", None)
     cache = getattr(ns, "cache", None)
     base_url = getattr(ns, "llm", None) or env.get(ENV_BASE_URL) or None
-    model = getattr(ns, "model", None)
+    model = (
+        getattr(ns, "llm_model", None) if hasattr(ns, "llm_model") else getattr(ns, "model", None)
+    )
     temperature = getattr(ns, "temperature", None)
     if replay:
         if cache:
