@@ -1,6 +1,7 @@
 """What a person reads and looks at: Markdown and plots of a discovery and of a diagnosis.
 
-- :func:`equations_markdown`: ``equations.md``, the discovered equations with their parameters.
+- :func:`equations_markdown`: ``equations.md``, the discovered equations with their parameters
+  (:func:`equation_sections`: as an engineer writes them, in LaTeX, and as Python).
 - :func:`plot_scores`: the paper's Fig. 3, the best score per round of each loop.
 - :func:`write_report` (with :func:`report_markdown`): the discrepancy report of
   :func:`jaxdmd.diagnose.diagnose`: ``report.md``, ``trajectories.png``, ``evidence.png``,
@@ -20,16 +21,14 @@ import numpy as np
 if TYPE_CHECKING:  # annotations only: report is imported by pipeline, not the reverse
     from jaxdmd.diagnose import Diagnosis
     from jaxdmd.pipeline import Discovery
-    from jaxdmd.search import RoundReport, SearchState
+    from jaxdmd.search import Equations, RoundReport, SearchState
 
 
 def equations_markdown(discovery: Discovery) -> str:
-    """``equations.md``: the state equations, then the algebraic ones."""
-    lines = ["# Discovered model", "", "## State equations (DE loop)", ""]
-    lines += [f"    {k} = {v}" for k, v in discovery.de.readable().items()]
-    if discovery.ae is not None:
-        lines += ["", "## Algebraic equations (AE loop)", ""]
-        lines += [f"    {k} = {v}" for k, v in discovery.ae.readable().items()]
+    """``equations.md``: the state equations, then the algebraic ones (as an engineer writes
+    them, in LaTeX, and as Python: :func:`equation_sections`)."""
+    lines = ["# Discovered model", ""]
+    lines += equation_sections(discovery.de, discovery.ae)
     frequency = discovery.report.get("de", {}).get("inclusion_frequency")
     searches = len(discovery.report.get("de", {}).get("searches", [])) or 1
     if frequency and searches > 1:
@@ -43,6 +42,33 @@ def equations_markdown(discovery: Discovery) -> str:
         lines += ["", f"## Held-out rollouts ({n} recording(s), means over them)", ""]
         lines += rollout_table(test).splitlines()
     return "\n".join(lines) + "\n"
+
+
+def equation_sections(*equations: Equations | None) -> list[str]:
+    """Markdown sections of fitted equations (state equations for a DE loop's, algebraic ones
+    for an AE loop's): as an engineer writes them (:mod:`jaxdmd.pretty`: e'_q, ω, signs folded),
+    in LaTeX, and as Python (the lines of ``model.py`` with the fitted values written in)."""
+    from jaxdmd import pretty
+
+    found = [eq for eq in equations if eq is not None]
+    lines: list[str] = []
+    latex: list[str] = []
+    for eq in found:
+        de = eq.contract.loop == "DE"
+        title = "State equations (DE loop)" if de else "Algebraic equations (AE loop)"
+        lines += [f"## {title}", ""]
+        for target, rhs in zip(eq.contract.targets, eq.readable().values(), strict=True):
+            lines.append(f"    {pretty.equation(target, rhs, dt=de)}")
+            latex.append(pretty.equation(target, rhs, "latex", dt=de).replace(" = ", " &= ", 1))
+        lines.append("")
+    if latex:
+        lines += ["## In LaTeX", "", "$$", "\\begin{aligned}"]
+        lines += [f"{row} \\\\" for row in latex[:-1]] + [latex[-1], "\\end{aligned}", "$$", ""]
+        lines += ["## As Python (the lines of `model.py`, fitted values written in)", ""]
+        for eq in found:
+            lines += [f"    {k} = {v}" for k, v in eq.readable().items()]
+        lines.append("")
+    return lines[:-1] if lines else lines
 
 
 def plot_scores(path: Path, loops: Sequence[tuple[str, SearchState]]) -> None:

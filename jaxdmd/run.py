@@ -21,7 +21,7 @@ from pathlib import Path
 
 import jax
 
-from jaxdmd import search
+from jaxdmd import pretty, search
 from jaxdmd.data import load_many
 from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory, discover
 from jaxdmd.report import Progress
@@ -256,8 +256,12 @@ def run_discover(args: argparse.Namespace) -> int:
         result.save(out, summary)
         progress.print(f"\n[bold]Discovered model[/bold] (written to {out}/):")
         for eq in (result.de, result.ae):
-            for k, v in (eq.readable() if eq is not None else {}).items():
-                progress.print(f"  {k} = {v}", markup=False)
+            if eq is None:
+                continue
+            rhs = eq.readable().values()
+            for target, v in zip(eq.contract.targets, rhs, strict=True):
+                text = pretty.equation(target, v, dt=eq.contract.loop == "DE")
+                progress.print(f"  {text}", markup=False)
         if test:
             from jaxdmd.report import plot_trajectories, rollout_table
 
