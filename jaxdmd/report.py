@@ -130,12 +130,13 @@ class Progress:
         self._log_file = None
 
     def print(self, text: str, markup: bool = True) -> None:
-        """Show ``text`` (rich markup unless ``markup`` is False) and copy it to the log."""
-        self.console.print(text, markup=markup)
+        """Show ``text`` and copy it to the log: rich markup, wrapped to the terminal, or with
+        ``markup=False`` as it is (equations, tables: no markup, long lines not wrapped)."""
+        self.console.print(text, markup=markup, soft_wrap=not markup)
         if self._log is None:
             self._pending.append((text, markup))
         else:
-            self._log.print(text, markup=markup)
+            self._log.print(text, markup=markup, soft_wrap=not markup)
             self._log_file.flush()
 
     def log_to(self, path: str | Path) -> None:
@@ -152,7 +153,7 @@ class Progress:
         now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
         self._log.print(f"# jaxdmd, started {now}", markup=False)
         for text, markup in self._pending:
-            self._log.print(text, markup=markup)
+            self._log.print(text, markup=markup, soft_wrap=not markup)
         self._pending.clear()
         self._log_file.flush()
 
