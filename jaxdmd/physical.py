@@ -79,6 +79,7 @@ __all__ = [
     "expand",
     "line_covariance",
     "physical_parameters",
+    "with_section",
 ]
 
 
@@ -723,3 +724,11 @@ def discovery_section(discovery: Any) -> tuple[str, dict[str, Any]]:
     except Exception as err:  # a report must not stop the pipeline
         text = f"could not map physical parameters: {type(err).__name__}: {err}"
         return f"## Physical parameters\n\n{text}\n", {"family": None, "error": text}
+
+
+def with_section(markdown: str, section: str) -> str:
+    """``markdown`` (``equations.md``) with ``section`` put first, after its ``#`` title."""
+    head, sep, rest = markdown.partition("\n\n")
+    if head.startswith("# ") and sep:
+        return f"{head}\n\n{section.rstrip()}\n\n{rest}"
+    return f"{section.rstrip()}\n\n{markdown}"

@@ -248,3 +248,28 @@ def test_standard_errors_match_ordinary_least_squares():
     assert abs(m.value - M) < 5 * m.stderr + 1e-9
     for p in ("T'_d0", "x'_d", "r_a", "x_q"):
         assert rep.get(p).stderr is not None and rep.get(p).stderr > 0
+
+
+def test_saved_discovery_puts_the_section_first(tmp_path):
+    import json
+
+    from jaxdmd.pipeline import Discovery
+
+    de_c, ae_c = _contracts()
+    src, params = _de_source()
+    found = Discovery(de=_equations(de_c, src, params), ae=_equations(ae_c, AE_SOURCE, AE_PARAMS))
+    found.save(tmp_path, {"source": "test"})
+    text = (tmp_path / "equations.md").read_text()
+    assert text.startswith("# Discovered model\n\n## Physical parameters")
+    assert text.index("## Physical parameters") < text.index("## State equations")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert next(iter(summary)) == "physical_parameters" and summary["source"] == "test"
+    h = next(p for p in summary["physical_parameters"]["parameters"] if p["name"] == "H")
+    assert h["value"] == pytest.approx(H, rel=0.02)
+
+
+def test_section_reports_a_failure_instead_of_raising():
+    from jaxdmd.physical import discovery_section
+
+    text, d = discovery_section(object())
+    assert "could not map" in text and d["family"] is None
