@@ -43,8 +43,8 @@ X_q/det from i_d, r_a/det, X_d/det from i_q. With both lines, det = 1/(a^2 + b c
 X_q all follow; with one line, X_d = X_q is assumed (PSAT 5.1, classical). The P_e line is
 reported but not used.
 
-Standard errors: each line is refitted nowhere; at the equation's fitted parameters the Jacobian
-J of its (operator-smoothed, weighted) predictions on the loop's data gives cov = s^2 (J^T W J)^-1,
+Standard errors (nothing is refitted): at each line's fitted parameters the Jacobian J of its
+(operator-smoothed, weighted) predictions on the loop's data gives cov = s^2 (J^T W J)^-1,
 s^2 = sum(w r^2) / (N - P). Different lines are taken as independent (block-diagonal covariance)
 and the physical parameters get their errors by the delta method (jax gradients of the maps).
 The residuals of matched (smoothed) derivative fits are correlated in time, so these errors are

@@ -273,3 +273,54 @@ def test_section_reports_a_failure_instead_of_raising():
 
     text, d = discovery_section(object())
     assert "could not map" in text and d["family"] is None
+
+
+@pytest.mark.slow
+def test_simulated_psat_51_machine_gives_its_parameters():
+    """The true structure fitted (integral form) on noise-free simulated bus-31 recordings."""
+    from jaxdmd.data import stack_samples
+    from jaxdmd.grid import benchmark_protocol
+    from jaxdmd.problems import de_problem
+    from jaxdmd.search import fit_problem
+
+    train = list(benchmark_protocol((31,), 1, 0.0, 0).train[31])
+    lib = ("i_d", "i_q", "P_e", "P_m", "v_f")
+    de_prob, de_c = de_problem(train, integral=0.5, library=lib)
+    assert de_c.targets == STATES
+    src, _ = _de_source()
+    src = src.replace("P_m, v_f, i_d, i_q, P_e, p", "i_d, i_q, P_e, P_m, v_f, p")
+    (fit,) = fit_problem([_equations(de_c, src, [0.0] * 11).skeleton()], de_prob, _key())
+    de = _equations(de_c, src, fit.params)
+    _, ae_c = _contracts()
+    variables = {k: jnp.asarray(v) for k, v in stack_samples(train, train[0].names).items()}
+    ae_prob = Problem(
+        variables=variables,
+        targets=jnp.stack([variables[t] for t in ALGEBRAIC]),
+        target_names=ALGEBRAIC,
+        catalog=(),
+    )
+    (ae_fit,) = fit_problem([_equations(ae_c, AE_SOURCE, [0.0] * 10).skeleton()], ae_prob, _key())
+    ae = _equations(ae_c, AE_SOURCE, ae_fit.params)
+    rep = physical_parameters(de, ae, de_prob, ae_prob)
+    assert rep.family == "psat-5.1"
+    for name, true in [
+        ("H", H),
+        ("Omega_b", OMEGA_B),
+        ("T'_d0", TD0),
+        ("x_d - x'_d", XD - XDP),
+        ("T'_q0", TQ0),
+        ("T''_q0", TQ02),
+        ("x'_d", XDP),
+        ("r_a", RA),
+        ("x_q", XQ),
+        ("x'_q", XQP),
+    ]:
+        p = _close(rep, name, true)
+        assert p.stderr is not None and p.stderr < 0.01 * abs(true)
+    assert rep.get("D").note == "not in the model"
+
+
+def _key():
+    import jax
+
+    return jax.random.key(0)
