@@ -498,6 +498,7 @@ def physical_parameters(
     for name, states in _FAMILIES:
         if all(ok.get(s) for s in states) and all(s in states for s in targets if s != "e_qpp"):
             family = name
+    partial = family is None
     if family is None:
         # the largest family whose states are all there and match, ignoring extra equations
         for name, states in _FAMILIES:
@@ -688,6 +689,14 @@ def physical_parameters(
             "larger root of x'_q^2 - x'_q (x_q - a + c) + c x_q = 0",
         )
 
+    if family is not None and partial:
+        states = dict(_FAMILIES)[family]
+        rest = ", ".join(f"d{t}/dt" for t in targets if t not in states)
+        notes.insert(
+            0,
+            f"{family}: the largest family whose equations all match; outside it: {rest} "
+            "(those that match their own form are still mapped)",
+        )
     if family is None:
         notes.insert(
             0,

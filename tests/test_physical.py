@@ -197,6 +197,8 @@ def test_extra_term_is_reported_as_not_matching():
     assert rep.get("T'_d0") is None
     assert rep.family != "psat-5.1"
     assert "e_dp * omega" in rep.markdown()
+    assert rep.family == "classical" and "outside it: de_qp/dt" in rep.notes[0]
+    _close(rep, "T''_q0", TQ02)  # still mapped on its own
 
 
 def test_nothing_matches():
@@ -324,3 +326,76 @@ def _key():
     import jax
 
     return jax.random.key(0)
+
+
+def _stator_lines(e_d: str | None, e_q: str, ra: float, xd: float, xq: float):
+    """i_d and i_q lines of 0 = v_q + r_a i_q - e_q + X_d i_d, 0 = v_d + r_a i_d - e_d - X_q i_q."""
+    det = ra**2 + xd * xq
+    vd, vq = "V * jnp.sin(delta - theta)", "V * jnp.cos(delta - theta)"
+    eq_term = "p[{}]" if e_q == "1" else "p[{}] * " + e_q
+    i_d = [(vd, -ra / det), (eq_term, xq / det), (vq, -xq / det)]
+    i_q = [(eq_term, ra / det), (vq, -ra / det), (vd, xd / det)]
+    if e_d:
+        i_d.insert(0, (f"p[{{}}] * {e_d}", ra / det))
+        i_q.append((f"p[{{}}] * {e_d}", -xd / det))
+    body, params = [], []
+    for out, terms in (("i_d_", i_d), ("i_q_", i_q)):
+        parts = []
+        for t, c in terms:
+            k = len(params)
+            parts.append(t.format(k) if "{}" in t else f"p[{k}] * {t}")
+            params.append(c)
+        body.append(f"    {out} = " + " + ".join(parts))
+    return body, params
+
+
+@pytest.mark.parametrize("family", ["classical", "one-axis"])
+def test_smaller_families_and_their_stator(family):
+    states = ("delta", "omega") if family == "classical" else ("delta", "omega", "e_qp")
+    de_c = Contract(
+        loop="DE",
+        targets=states,
+        states=tuple(_var(s, "state") for s in states),
+        library=(
+            _var("P_m", "input"),
+            _var("v_f", "input"),
+            _var("i_d", "algebraic"),
+            _var("P_e", "algebraic"),
+        ),
+    )
+    src = (
+        f"def equation({', '.join(states)}, P_m, v_f, i_d, P_e, p):\n"
+        "    d_delta = p[0] * omega - p[1]\n"
+        "    d_omega = (P_m - P_e - p[2] * (omega - 1)) / p[3]\n"
+    )
+    params = [OMEGA_B, OMEGA_B, 2.0, M]
+    outs = ["d_delta", "d_omega"]
+    if family == "one-axis":
+        src += "    d_e_qp = p[4] * e_qp + p[5] * v_f + p[6] * i_d\n"
+        params += [-1 / TD0, 1 / TD0, -(XD - XDP) / TD0]
+        outs.append("d_e_qp")
+    src += f"    return {', '.join(outs)}\n"
+    xq = XDP if family == "classical" else XQ
+    body, ae_params = _stator_lines(None, "1" if family == "classical" else "e_qp", RA, XDP, xq)
+    ae_c = Contract(
+        loop="AE",
+        targets=("i_d", "i_q"),
+        states=de_c.states,
+        library=(_var("V", "boundary"), _var("theta", "boundary")),
+        function_name="algebraic",
+    )
+    ae_src = (
+        f"def algebraic({', '.join(states)}, V, theta, p):\n"
+        + "\n".join(body)
+        + "\n    return i_d_, i_q_\n"
+    )
+    rep = physical_parameters(_equations(de_c, src, params), _equations(ae_c, ae_src, ae_params))
+    assert rep.family == family
+    _close(rep, "H", H)
+    _close(rep, "D", 2.0)
+    _close(rep, "Omega_b (constant term)", OMEGA_B)
+    _close(rep, "x'_d", XDP)
+    _close(rep, "r_a", RA)
+    _close(rep, "x_q" if family == "one-axis" else "x'_d (q axis)", xq)
+    if family == "one-axis":
+        _close(rep, "T'_d0", TD0)
