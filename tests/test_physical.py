@@ -349,9 +349,13 @@ def _stator_lines(e_d: str | None, e_q: str, ra: float, xd: float, xq: float):
     return body, params
 
 
-@pytest.mark.parametrize("family", ["classical", "one-axis"])
+@pytest.mark.parametrize("family", ["classical", "one-axis", "two-axis"])
 def test_smaller_families_and_their_stator(family):
-    states = ("delta", "omega") if family == "classical" else ("delta", "omega", "e_qp")
+    states = {
+        "classical": ("delta", "omega"),
+        "one-axis": ("delta", "omega", "e_qp"),
+        "two-axis": ("delta", "omega", "e_qp", "e_dp"),
+    }[family]
     de_c = Contract(
         loop="DE",
         targets=states,
@@ -360,23 +364,29 @@ def test_smaller_families_and_their_stator(family):
             _var("P_m", "input"),
             _var("v_f", "input"),
             _var("i_d", "algebraic"),
+            _var("i_q", "algebraic"),
             _var("P_e", "algebraic"),
         ),
     )
     src = (
-        f"def equation({', '.join(states)}, P_m, v_f, i_d, P_e, p):\n"
+        f"def equation({', '.join(states)}, P_m, v_f, i_d, i_q, P_e, p):\n"
         "    d_delta = p[0] * omega - p[1]\n"
         "    d_omega = (P_m - P_e - p[2] * (omega - 1)) / p[3]\n"
     )
     params = [OMEGA_B, OMEGA_B, 2.0, M]
     outs = ["d_delta", "d_omega"]
-    if family == "one-axis":
+    if family != "classical":
         src += "    d_e_qp = p[4] * e_qp + p[5] * v_f + p[6] * i_d\n"
         params += [-1 / TD0, 1 / TD0, -(XD - XDP) / TD0]
         outs.append("d_e_qp")
+    if family == "two-axis":
+        src += "    d_e_dp = p[7] * e_dp + p[8] * i_q\n"
+        params += [-1 / TQ0, (XQ - XQP) / TQ0]
+        outs.append("d_e_dp")
     src += f"    return {', '.join(outs)}\n"
-    xq = XDP if family == "classical" else XQ
-    body, ae_params = _stator_lines(None, "1" if family == "classical" else "e_qp", RA, XDP, xq)
+    xq = {"classical": XDP, "one-axis": XQ, "two-axis": XQP}[family]
+    e_d = "e_dp" if family == "two-axis" else None
+    body, ae_params = _stator_lines(e_d, "1" if family == "classical" else "e_qp", RA, XDP, xq)
     ae_c = Contract(
         loop="AE",
         targets=("i_d", "i_q"),
@@ -396,6 +406,9 @@ def test_smaller_families_and_their_stator(family):
     _close(rep, "Omega_b (constant term)", OMEGA_B)
     _close(rep, "x'_d", XDP)
     _close(rep, "r_a", RA)
-    _close(rep, "x_q" if family == "one-axis" else "x'_d (q axis)", xq)
-    if family == "one-axis":
+    _close(rep, {"classical": "x'_d (q axis)", "one-axis": "x_q", "two-axis": "x'_q"}[family], xq)
+    if family != "classical":
         _close(rep, "T'_d0", TD0)
+    if family == "two-axis":
+        _close(rep, "T'_q0", TQ0)
+        _close(rep, "x_q - x'_q", XQ - XQP)
