@@ -373,17 +373,21 @@ class Discovery:
     def save(self, directory: str | Path, summary: Mapping[str, Any] | None = None) -> Path:
         """Write ``model.py``, ``equations.md``, ``scores.png`` (when the loops' states are
         known) and ``summary.json`` (``summary``, default :meth:`summary`) into ``directory``."""
-        from jaxdmd import report
+        from jaxdmd import physical, report
 
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         (out / "model.py").write_text(self.module_source())
-        (out / "equations.md").write_text(report.equations_markdown(self))
+        section, parameters = physical.discovery_section(self)
+        (out / "equations.md").write_text(
+            physical.with_section(report.equations_markdown(self), section)
+        )
         loops = [(n, s) for n, s in (("DE", self.de_state), ("AE", self.ae_state)) if s]
         if loops:
             report.plot_scores(out / "scores.png", loops)
+        summary = self.summary() if summary is None else summary
         search.write_json_atomic(
-            out / "summary.json", self.summary() if summary is None else summary
+            out / "summary.json", {"physical_parameters": parameters, **summary}
         )
         return out
 
