@@ -20,7 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdmd.data import Dataset, event_samples, matched_filter, stack_samples
+from jaxdmd.data import (
+    Dataset,
+    estimator_band,
+    event_samples,
+    matched_filter,
+    stack_samples,
+)
 from jaxdmd.fit import Operator
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.search import Problem
@@ -267,22 +273,15 @@ class EstimatorGains:
     derivative_square: np.ndarray  # sum_k D_ik^2
 
 
-def estimator_gains(ds: Dataset, block: int = 2000) -> EstimatorGains:
+def estimator_gains(ds: Dataset) -> EstimatorGains:
     """The :class:`EstimatorGains` of ``ds``'s time grid and events.
 
-    S and D are linear in the samples, so they are built from unit samples, a block of columns
-    at a time: memory stays n x block.
+    S and D are band matrices (:func:`jaxdmd.data.estimator_band`): memory and time are linear
+    in the number of samples.
     """
-    from jaxdmd.data import differentiate
-
+    lo, smooth, deriv = estimator_band(ds.t, events=ds.events)
     n = ds.n_samples
-    diagonal, s_square, d_square = np.zeros(n), np.zeros(n), np.zeros(n)
-    for start in range(0, n, block):
-        cols = np.arange(start, min(n, start + block))
-        unit = np.zeros((n, cols.size))
-        unit[cols, np.arange(cols.size)] = 1.0
-        s_cols, d_cols = differentiate(ds.t, unit, events=ds.events)  # S[:, cols], D[:, cols]
-        diagonal[cols] = s_cols[cols, np.arange(cols.size)]
-        s_square += np.sum(s_cols**2, axis=1)
-        d_square += np.sum(d_cols**2, axis=1)
-    return EstimatorGains(diagonal, s_square, d_square)
+    offset = np.arange(n) - lo
+    inside = (offset >= 0) & (offset < smooth.shape[1])
+    diagonal = np.where(inside, smooth[np.arange(n), np.clip(offset, 0, smooth.shape[1] - 1)], 0.0)
+    return EstimatorGains(diagonal, np.sum(smooth**2, axis=1), np.sum(deriv**2, axis=1))

@@ -181,3 +181,29 @@ def test_matched_filter_of_a_long_recording_is_a_narrow_band():
     assert np.all(np.isfinite(weight))
     # the matched operator applied to a constant derivative gives the constant (rows sum to 1)
     assert np.allclose(weight.sum(axis=1)[5:-5], 1.0, atol=1e-6)
+
+
+def test_estimator_gains_equal_the_dense_columns():
+    """`jaxdmd.problems.estimator_gains` from the bands equals the former construction (the
+    matrices of `differentiate` from unit samples, a block of columns at a time)."""
+    from jaxdmd.data import Dataset
+    from jaxdmd.problems import estimator_gains
+
+    t = np.round(np.arange(0.0, 6.0, 0.01), 12)
+    x = np.sin(t)
+    for events in ((), (1.0, 1.1), (1.0, 1.01), (0.01, 5.99)):
+        ds = Dataset.create(t, [("x", x)], {"x": "state"}, events=events)
+        gains = estimator_gains(ds)
+        n, block = len(t), 250
+        diagonal, s_square, d_square = np.zeros(n), np.zeros(n), np.zeros(n)
+        for start in range(0, n, block):
+            cols = np.arange(start, min(n, start + block))
+            unit = np.zeros((n, cols.size))
+            unit[cols, np.arange(cols.size)] = 1.0
+            s_cols, d_cols = differentiate(t, unit, events=events)
+            diagonal[cols] = s_cols[cols, np.arange(cols.size)]
+            s_square += np.sum(s_cols**2, axis=1)
+            d_square += np.sum(d_cols**2, axis=1)
+        np.testing.assert_allclose(gains.smoother_diagonal, diagonal, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(gains.smoother_square, s_square, rtol=1e-12)
+        np.testing.assert_allclose(gains.derivative_square, d_square, rtol=1e-12)
