@@ -412,12 +412,15 @@ def estimator_band(
             for i in lone:
                 j = int(np.searchsorted(good, i))
                 p, q = good[max(j - 1, 0)], good[min(j, good.size - 1)]
-                a = 0.0 if p == q else (t[i] - t[p]) / (t[q] - t[p])
                 lo_i = min(lo[p], i)
-                row = np.zeros(wide)
-                row[lo[p] - lo_i : lo[p] - lo_i + width] += (1.0 - a) * deriv[p, :width]
-                row[lo[q] - lo_i : lo[q] - lo_i + width] += a * deriv[q, :width]
-                deriv[i] = row
+                row_p, row_q = np.zeros(wide), np.zeros(wide)
+                row_p[lo[p] - lo_i : lo[p] - lo_i + width] = deriv[p, :width]
+                row_q[lo[q] - lo_i : lo[q] - lo_i + width] = deriv[q, :width]
+                # np.interp's own arithmetic, so that the rows are those of differentiate
+                if p == q:
+                    deriv[i] = row_p
+                else:
+                    deriv[i] = (row_q - row_p) / (t[q] - t[p]) * (t[i] - t[p]) + row_p
                 smooth[i] = 0.0
                 smooth[i, i - lo_i] = 1.0  # the lone sample's value is its own
                 lo[i] = lo_i

@@ -273,15 +273,30 @@ class EstimatorGains:
     derivative_square: np.ndarray  # sum_k D_ik^2
 
 
-def estimator_gains(ds: Dataset) -> EstimatorGains:
+def estimator_gains(ds: Dataset, block: int = 2000) -> EstimatorGains:
     """The :class:`EstimatorGains` of ``ds``'s time grid and events.
 
-    S and D are band matrices (:func:`jaxdmd.data.estimator_band`): memory and time are linear
-    in the number of samples.
+    S and D are band matrices (:func:`jaxdmd.data.estimator_band`). The sums of squares are
+    taken over dense slices of ``block`` columns (the rows the block meets), as the former
+    construction from unit samples summed them, so they are the same to the last bit: memory
+    stays (block + band) x block and time is linear in the number of samples.
     """
     lo, smooth, deriv = estimator_band(ds.t, events=ds.events)
-    n = ds.n_samples
-    offset = np.arange(n) - lo
-    inside = (offset >= 0) & (offset < smooth.shape[1])
-    diagonal = np.where(inside, smooth[np.arange(n), np.clip(offset, 0, smooth.shape[1] - 1)], 0.0)
-    return EstimatorGains(diagonal, np.sum(smooth**2, axis=1), np.sum(deriv**2, axis=1))
+    n, width = smooth.shape
+    rows_all = np.arange(n)
+    offset = rows_all - lo
+    inside = (offset >= 0) & (offset < width)
+    diagonal = np.where(inside, smooth[rows_all, np.clip(offset, 0, width - 1)], 0.0)
+    s_square, d_square = np.zeros(n), np.zeros(n)
+    hi = lo + width  # one past the band (the padding beyond n holds zeros)
+    for start in range(0, n, block):
+        stop = min(n, start + block)
+        rows = np.flatnonzero((lo < stop) & (hi > start))
+        cols = lo[rows, None] + np.arange(width)[None, :] - start  # [r, width] in the block
+        keep = (cols >= 0) & (cols < stop - start)
+        r_idx = np.broadcast_to(np.arange(rows.size)[:, None], cols.shape)[keep]
+        for band, total in ((smooth, s_square), (deriv, d_square)):
+            dense = np.zeros((rows.size, stop - start))
+            dense[r_idx, cols[keep]] = band[rows][keep]
+            total[rows] += np.sum(dense**2, axis=1)
+    return EstimatorGains(diagonal, s_square, d_square)
