@@ -42,6 +42,7 @@ __all__ = [
     "check_compatible",
     "differentiate",
     "differentiation_error",
+    "estimator_band",
     "load_many",
     "matched_filter",
     "samples",
@@ -113,15 +114,15 @@ def segments(t: np.ndarray, events: Iterable[float] = ()) -> list[slice]:
     return [slice(a, b) for a, b in itertools.pairwise(cuts)]
 
 
-def _local_polynomial(
-    t: np.ndarray, x: np.ndarray, half: np.ndarray, order: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Local least-squares polynomial (Savitzky-Golay on any grid) on one segment.
+def _windows(
+    t: np.ndarray, half: np.ndarray, order: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The local fits of `_local_polynomial` on one segment: windows and normal equations.
 
-    ``half[i]`` is the half-width (in samples) of the window of sample ``i``: the fit uses the
-    ``2 half[i] + 1`` samples around ``i``, shifted inwards near the segment ends (as scipy's
-    ``savgol_filter(mode="interp")``), and is evaluated at ``t[i]``. Returns the fitted value and
-    slope at every sample. ``x`` is [m, k].
+    Returns ``idx`` [m, wmax] (the window of sample ``i`` is ``idx[i, :width_i]``, contiguous;
+    padding repeats its first sample), ``mask`` [m, wmax] (inside the window), the weighted
+    Vandermonde matrices ``V`` [m, wmax, order+1] (zero outside the window), the normal matrices
+    ``G`` [m, order+1, order+1] and the window time scales ``scale`` [m], and ``start`` [m].
     """
     m = t.shape[0]
     width = np.minimum(2 * half + 1, m)  # [m]
@@ -140,11 +141,45 @@ def _local_polynomial(
     G = np.einsum("mwa,mwb->mab", V, V)
     unused = powers[None, :] > p[:, None]
     G = G + np.einsum("ma,ab->mab", unused.astype(np.float64), np.eye(order + 1))
+    return idx, mask, V, G, scale, start
+
+
+def _local_polynomial(
+    t: np.ndarray, x: np.ndarray, half: np.ndarray, order: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local least-squares polynomial (Savitzky-Golay on any grid) on one segment.
+
+    ``half[i]`` is the half-width (in samples) of the window of sample ``i``: the fit uses the
+    ``2 half[i] + 1`` samples around ``i``, shifted inwards near the segment ends (as scipy's
+    ``savgol_filter(mode="interp")``), and is evaluated at ``t[i]``. Returns the fitted value and
+    slope at every sample. ``x`` is [m, k].
+    """
+    idx, mask, V, G, scale, _ = _windows(t, half, order)
     rhs = np.einsum("mwa,mwk->mak", V, x[idx] * mask[..., None])
     coef = np.linalg.solve(G, rhs)  # [m, order+1, k]
     value = coef[:, 0, :]
     slope = coef[:, 1, :] / scale[:, None] if order >= 1 else np.zeros_like(value)
     return value, slope
+
+
+def _local_polynomial_band(
+    t: np.ndarray, half: np.ndarray, order: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weights of `_local_polynomial` as band matrices, without applying them to data.
+
+    Returns ``(start, value, slope)``: ``start`` [m] the first sample of each window,
+    ``value`` and ``slope`` [m, wmax] the weights of samples ``start[i] + k`` (zero beyond the
+    window), so that the fitted value at ``i`` is ``sum_k value[i, k] x[start[i] + k]``. Memory
+    is O(m * wmax), not the O(m^2) of applying `_local_polynomial` to the identity.
+    """
+    _, mask, V, G, scale, start = _windows(t, half, order)
+    weights = np.linalg.solve(G, np.swapaxes(V, 1, 2))  # [m, order+1, wmax]
+    value = np.where(mask, weights[:, 0, :], 0.0)
+    if order >= 1:
+        slope = np.where(mask, weights[:, 1, :] / scale[:, None], 0.0)
+    else:
+        slope = np.zeros_like(value)
+    return start, value, slope
 
 
 def _half_widths(
@@ -280,6 +315,118 @@ def differentiate(
 # ------------------------------------------------------------------------------------------------
 
 
+def _probe_band(
+    apply: Callable[[np.ndarray], np.ndarray], m: int, reach: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matrices of a linear map ``apply`` (``x`` [m, k] -> ``(value, slope)``, each
+    [m, k]) whose rows reach at most ``reach`` samples either side, as bands.
+
+    Impulses ``2 reach + 1`` samples apart do not overlap in the output, so ``2 reach + 1``
+    interleaved combs give every entry of the matrices: O(m reach) memory. Returns ``(lo,
+    value, slope)`` as `_local_polynomial_band` does.
+    """
+    period = 2 * reach + 1
+    combs = np.zeros((m, period))
+    combs[np.arange(m), np.arange(m) % period] = 1.0
+    value, slope = apply(combs)
+    lo = np.maximum(np.arange(m) - reach, 0)
+    cols = lo[:, None] + np.arange(period)[None, :]  # one column of every residue per row
+    rows = np.arange(m)[:, None]
+    valid = cols < m
+    return (
+        lo,
+        np.where(valid, value[rows, cols % period], 0.0),
+        np.where(valid, slope[rows, cols % period], 0.0),
+    )
+
+
+def estimator_band(
+    t: ArrayLike,
+    *,
+    events: Iterable[float] = (),
+    method: Method = DEFAULT_METHOD,
+    window: float = 0.31,
+    window_min: float = 0.11,
+    growth: float = 0.5,
+    order: int = 3,
+    lam: float | None = None,
+    split: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matrices of `differentiate` (smoothed values ``S x``, derivatives ``D x``) as bands.
+
+    `differentiate` is linear in ``x`` (for ``"spline"`` only with a fixed ``lam``); this returns
+    ``(lo, smooth, deriv)``, ``lo`` [n] and ``smooth``, ``deriv`` [n, w]: ``S[i, lo[i] + k] =
+    smooth[i, k]`` (zero where ``lo[i] + k >= n``) and all other entries of row ``i`` zero, the
+    same for ``D``. The local fits (``"adaptive"``, ``"savgol"``) are read off their normal
+    equations and ``"gradient"`` from probe signals, in O(n w) memory and time; ``"spline"``
+    (not local) is the dense segment matrix, O(n^2). Options as for `differentiate`.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    n = t.shape[0]
+    if t.ndim != 1:
+        raise DataError(f"estimator_band: t has shape {t.shape}")
+    if n >= 2 and not np.all(np.diff(t) > 0):
+        raise DataError("estimator_band: t must be strictly increasing")
+    if method not in METHODS:
+        raise DataError(f"estimator_band: unknown method {method!r}; use one of {METHODS}")
+    pieces: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    lone: list[int] = []
+    for k, seg in enumerate(segments(t, events if split else ())):
+        ts = t[seg]
+        m = ts.shape[0]
+        if m == 1:  # a lone sample: its value is kept, its slope interpolated below
+            lone.append(seg.start)
+            pieces.append((seg.start, np.zeros(1, np.int64), np.ones((1, 1)), np.zeros((1, 1))))
+            continue
+        if method == "gradient" or m < 3:
+            edge = 2 if m >= 3 else 1
+
+            def gradient(x: np.ndarray, ts: np.ndarray = ts, edge: int = edge) -> tuple:
+                return x, np.gradient(x, ts, axis=0, edge_order=edge)
+
+            lo, value, slope = _probe_band(gradient, m, 2)
+        elif method == "spline" and m >= 5:
+            lo = np.zeros(m, dtype=np.int64)
+            value, slope = _spline(ts, np.eye(m), lam)
+        else:
+            wmin = window_min if method == "adaptive" and k > 0 else None
+            half = _half_widths(ts, window, wmin, growth)
+            lo, value, slope = _local_polynomial_band(ts, half, order)
+        pieces.append((seg.start, lo, value, slope))
+    width = max(v.shape[1] for _, _, v, _ in pieces)
+    lo = np.zeros(n, dtype=np.int64)
+    smooth = np.zeros((n, width))
+    deriv = np.zeros((n, width))
+    for start, lo_k, value, slope in pieces:
+        rows = slice(start, start + lo_k.shape[0])
+        lo[rows] = lo_k + start
+        smooth[rows, : value.shape[1]] = value
+        deriv[rows, : slope.shape[1]] = slope
+    if lone:  # as differentiate: the slope interpolated in time from the other samples
+        good = np.setdiff1d(np.arange(n), lone)
+        if good.size:
+            gap = int(np.max(np.diff(np.concatenate([[-1], good, [n]]))))
+            wide = 2 * width + gap + 1  # rows p and q of the neighbours and the sample itself
+            deriv = np.pad(deriv, [(0, 0), (0, wide - width)])
+            smooth = np.pad(smooth, [(0, 0), (0, wide - width)])
+            for i in lone:
+                j = int(np.searchsorted(good, i))
+                p, q = good[max(j - 1, 0)], good[min(j, good.size - 1)]
+                lo_i = min(lo[p], i)
+                row_p, row_q = np.zeros(wide), np.zeros(wide)
+                row_p[lo[p] - lo_i : lo[p] - lo_i + width] = deriv[p, :width]
+                row_q[lo[q] - lo_i : lo[q] - lo_i + width] = deriv[q, :width]
+                # np.interp's own arithmetic, so that the rows are those of differentiate
+                if p == q:
+                    deriv[i] = row_p
+                else:
+                    deriv[i] = (row_q - row_p) / (t[q] - t[p]) * (t[i] - t[p]) + row_p
+                smooth[i] = 0.0
+                smooth[i, i - lo_i] = 1.0  # the lone sample's value is its own
+                lo[i] = lo_i
+    return lo, smooth, deriv
+
+
 def matched_filter(
     t: ArrayLike, *, events: Iterable[float] = (), method: Method = DEFAULT_METHOD, **kw: Any
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -295,24 +442,39 @@ def matched_filter(
 
     Returns ``(index, weight)``, both ``[n, w]``: ``(S @ y)_i = sum_k weight[i, k] *
     y[index[i, k]]``. Options as for `differentiate` (the same method and windows must be used
-    for the derivative estimates the operator is matched to).
+    for the derivative estimates the operator is matched to). ``D`` is built as a band
+    (`estimator_band`), so memory and time are linear in ``n`` (except for ``"spline"``).
     """
     t = np.asarray(t, dtype=np.float64)
     n = len(t)
-    _, d = differentiate(t, np.eye(n), events=events, method=method, **kw)
-    c = np.cumsum(d[:, ::-1], axis=1)[:, ::-1]  # c[i, l] = sum_{j >= l} D[i, j]
-    w = c[:, 1:] * np.diff(t)  # interval weights
-    s = np.zeros_like(d)
-    s[:, :-1] += w / 2
-    s[:, 1:] += w / 2
+    lo, _, d = estimator_band(t, events=events, method=method, **kw)
+    b = d.shape[1]
+    rows = np.arange(n)[:, None]
+    dt = np.diff(t)
+    # c[i, lo_i + k] = sum_(j >= lo_i + k) D_ij; left of the band it is the row sum (round-off)
+    c = np.cumsum(d[:, ::-1], axis=1)[:, ::-1]  # [n, b]
+    # s on the columns lo_i - 1 + r, r = 0..b: s[i, l] = w[i, l] / 2 + w[i, l - 1] / 2 with
+    # w[i, l] = c[i, l + 1] dt_l (l <= n - 2); the column left of the band holds round-off only
+    col = lo[:, None] - 1 + np.arange(b + 1)[None, :]  # [n, b + 1]
+    c_next = np.concatenate([c, np.zeros((n, 1))], axis=1)  # c[i, col + 1]
+    c_here = np.concatenate([c[:, :1], c], axis=1)  # c[i, col]
+    w_here = np.where(col <= n - 2, c_next * dt[np.clip(col, 0, n - 2)], 0.0)
+    w_left = np.where(col >= 1, c_here * dt[np.clip(col - 1, 0, n - 2)], 0.0)
+    s = (0.0 + w_here / 2) + w_left / 2
+    s = np.where((col >= 0) & (col <= n - 1), s, 0.0)
+    # the dense matrix has round-off entries left of the band too: below the threshold
     s[np.abs(s) < 1e-10 * np.abs(s).max()] = 0.0  # round-off of the zero row sums
     nonzero = s != 0
-    lo = np.where(nonzero.any(axis=1), nonzero.argmax(axis=1), 0)
-    hi = np.where(nonzero.any(axis=1), n - 1 - nonzero[:, ::-1].argmax(axis=1), 0)
-    width = int((hi - lo).max()) + 1
-    index = np.minimum(lo[:, None] + np.arange(width)[None, :], n - 1)
-    inside = lo[:, None] + np.arange(width)[None, :] <= hi[:, None]
-    weight = np.where(inside, np.take_along_axis(s, index, axis=1), 0.0)
+    any_nz = nonzero.any(axis=1)
+    first = nonzero.argmax(axis=1)
+    last = b - nonzero[:, ::-1].argmax(axis=1)
+    lo_s = np.where(any_nz, col[np.arange(n), first], 0)
+    hi_s = np.where(any_nz, col[np.arange(n), last], 0)
+    width = int((hi_s - lo_s).max()) + 1
+    index = np.minimum(lo_s[:, None] + np.arange(width)[None, :], n - 1)
+    inside = lo_s[:, None] + np.arange(width)[None, :] <= hi_s[:, None]
+    k = np.clip(index - (lo[:, None] - 1), 0, b)
+    weight = np.where(inside, s[rows, k], 0.0)
     return index, weight
 
 

@@ -20,7 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdmd.data import Dataset, event_samples, matched_filter, stack_samples
+from jaxdmd.data import (
+    Dataset,
+    estimator_band,
+    event_samples,
+    matched_filter,
+    stack_samples,
+)
 from jaxdmd.fit import Operator
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.search import Problem
@@ -270,19 +276,27 @@ class EstimatorGains:
 def estimator_gains(ds: Dataset, block: int = 2000) -> EstimatorGains:
     """The :class:`EstimatorGains` of ``ds``'s time grid and events.
 
-    S and D are linear in the samples, so they are built from unit samples, a block of columns
-    at a time: memory stays n x block.
+    S and D are band matrices (:func:`jaxdmd.data.estimator_band`). The sums of squares are
+    taken over dense slices of ``block`` columns (the rows the block meets), as the former
+    construction from unit samples summed them, so they are the same to the last bit: memory
+    stays (block + band) x block and time is linear in the number of samples.
     """
-    from jaxdmd.data import differentiate
-
-    n = ds.n_samples
-    diagonal, s_square, d_square = np.zeros(n), np.zeros(n), np.zeros(n)
+    lo, smooth, deriv = estimator_band(ds.t, events=ds.events)
+    n, width = smooth.shape
+    rows_all = np.arange(n)
+    offset = rows_all - lo
+    inside = (offset >= 0) & (offset < width)
+    diagonal = np.where(inside, smooth[rows_all, np.clip(offset, 0, width - 1)], 0.0)
+    s_square, d_square = np.zeros(n), np.zeros(n)
+    hi = lo + width  # one past the band (the padding beyond n holds zeros)
     for start in range(0, n, block):
-        cols = np.arange(start, min(n, start + block))
-        unit = np.zeros((n, cols.size))
-        unit[cols, np.arange(cols.size)] = 1.0
-        s_cols, d_cols = differentiate(ds.t, unit, events=ds.events)  # S[:, cols], D[:, cols]
-        diagonal[cols] = s_cols[cols, np.arange(cols.size)]
-        s_square += np.sum(s_cols**2, axis=1)
-        d_square += np.sum(d_cols**2, axis=1)
+        stop = min(n, start + block)
+        rows = np.flatnonzero((lo < stop) & (hi > start))
+        cols = lo[rows, None] + np.arange(width)[None, :] - start  # [r, width] in the block
+        keep = (cols >= 0) & (cols < stop - start)
+        r_idx = np.broadcast_to(np.arange(rows.size)[:, None], cols.shape)[keep]
+        for band, total in ((smooth, s_square), (deriv, d_square)):
+            dense = np.zeros((rows.size, stop - start))
+            dense[r_idx, cols[keep]] = band[rows][keep]
+            total[rows] += np.sum(dense**2, axis=1)
     return EstimatorGains(diagonal, s_square, d_square)
