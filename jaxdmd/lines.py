@@ -186,6 +186,28 @@ def without_each_summand(line: Line) -> list[Line]:
     return out
 
 
+def simple_summands(line: Line) -> list[Line]:
+    """The summands of ``line`` that carry exactly one parameter, each as a line of its own
+    (``p[3] * i_q`` gives ``p[0] * i_q``): the terms a line can lend to another."""
+    out = []
+    for s in summands(line.expr):
+        indices = [_param_index(n) for n in ast.walk(s)]
+        if len([i for i in indices if i is not None]) != 1:
+            continue
+        renumber = _Renumber()
+        expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(s)))
+        out.append(Line(expr, 1))
+    return out
+
+
+def with_summand(line: Line, term: Line) -> Line:
+    """``line + term``, the term's parameters numbered after the line's."""
+    renumber = _Renumber(line.n_params)
+    extra = renumber.visit(copy.deepcopy(term.expr))
+    expr = ast.BinOp(left=copy.deepcopy(line.expr), op=ast.Add(), right=extra)
+    return Line(ast.fix_missing_locations(expr), line.n_params + len(renumber.mapping))
+
+
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
     """The expression with fitted parameter values in place of ``p[i]`` (for readable output)."""
 

@@ -53,7 +53,6 @@ from jaxdmd.select import (
     inclusion_frequency,
     pool,
     select_by_simulation,
-    select_closed,
     simulation_nrmse,
 )
 
@@ -680,15 +679,6 @@ def discover(
 
             summary["test_r2"] = algebraic_r2(ae, list(test))
         report["ae"] = summary
-        if config.selection is not None:
-            start = time.perf_counter()
-            de = _closed_selection(de_state, de, ae, train, config, judge, de_key, report)
-            report["de"]["closed_selection"]["seconds"] = time.perf_counter() - start
-            if report["de"]["closed_selection"].get("changed"):
-                observer.message(
-                    "DE equations chosen by how the closed model simulates: "
-                    + ", ".join(f"d{t}/dt" for t in report["de"]["closed_selection"]["changed"])
-                )
     report["de"]["inclusion_frequency"] = inclusion_frequency(de, per_search)
     stats = getattr(factory, "stats", None)
     if stats is not None:
@@ -726,42 +716,6 @@ class Judge:
             return after
         report["kept"] = "the refit simulates the training recordings worse"
         return before
-
-
-def _closed_selection(
-    de_state: SearchState,
-    de: Equations,
-    ae: Equations,
-    train: Sequence[Dataset],
-    config: DiscoveryConfig,
-    judge: Judge,
-    de_key: jax.Array,
-    report: dict[str, Any],
-) -> Equations:
-    """The state equations chosen again by how the closed model simulates
-    (:func:`jaxdmd.select.select_closed`); a new choice is refitted in the integral form (kept
-    if the closed model simulates no worse with it) and replaces ``report["de"]``'s equations."""
-    chosen, closed = select_closed(de_state, de, ae, train, config.selection)
-    if closed.get("changed"):
-        if config.refit_window:
-            refitted, _ = refit_integral(
-                chosen, train, config.refit_window, jax.random.fold_in(de_key, 9)
-            )
-            before = simulation_nrmse(chosen, train, ae, config.selection)
-            after = simulation_nrmse(refitted, train, ae, config.selection)
-            closed["refit_integral"] = {"before": before, "after": after}
-            chosen = refitted if after <= before else chosen
-        de_report = report["de"]
-        de_report.update(
-            equations=chosen.readable(),
-            source=chosen.source,
-            params=list(chosen.params),
-            nmse=dict(zip(chosen.contract.targets, chosen.losses, strict=True)),
-            score=chosen.score,
-        )
-        de = chosen
-    report["de"]["closed_selection"] = closed
-    return de
 
 
 def _ae_regressors(

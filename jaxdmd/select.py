@@ -13,6 +13,10 @@ simulation instead:
    every other channel played in (measured). Its error is the state's NRMSE (RMSE over the
    measured range). A line that does not vanish at the recorded operating point drifts, an
    unstable one diverges: both score badly without a special rule.
+   The candidates are then varied term by term (:func:`_local_search`): the best lines lose
+   one term or gain one of the equation's most frequent archived terms, and the variants are
+   simulated in turn, so a stand-in the derivative fit preferred can be dropped and a weak
+   term it could not see can be added even where no search wrote the true line.
 2. **The equations together**: the best line of each equation (the simplest within
    ``tolerance`` of the best simulation error) and the derivative-chosen lines are combined;
    each combination is simulated coupled (all states integrated, the measured algebraic
@@ -66,6 +70,11 @@ class SelectionConfig:
             as good as the best (complexity breaks ties). The rollouts are compared with noisy
             recordings and driven by noisy played-in channels: differences of a few percent
             are noise, not evidence.
+        steps: rounds of the local search in term space after the first candidates: the
+            best lines so far (the simplest within ``tolerance`` and the most accurate) are
+            varied by dropping one term or adding one of the equation's ``terms`` most frequent
+            archived terms, and the variants are simulated in turn (0: no local search).
+        terms: how many of the archive's terms of an equation the local search may add.
         substeps: integration steps per sample interval (Heun's method: stable for modes
             faster than the samples by a factor of two, such as T''_q0 = 0.04 s at 100 Hz).
         blowup: a simulated state beyond ``blowup * (1 + max |measured|)`` has diverged.
@@ -73,6 +82,8 @@ class SelectionConfig:
 
     candidates: int = 6
     tolerance: float = 0.25
+    steps: int = 2
+    terms: int = 12
     substeps: int = 1
     blowup: float = 1e3
 
@@ -273,6 +284,70 @@ def _candidate_lines(
     return list(out.values())
 
 
+def _term_pool(
+    archived: Sequence[tuple[tuple[float, ...], tuple[ln.Line, ...]]], j: int, k: int
+) -> list[ln.Line]:
+    """The ``k`` one-parameter terms of equation ``j`` found in most archived lines (ties: in
+    the order of the lines' training loss)."""
+    count: dict[str, int] = {}
+    first: dict[str, ln.Line] = {}
+    for _, lines in sorted(archived, key=lambda e: e[0][j]):
+        for term in ln.simple_summands(lines[j]):
+            key = term.text
+            count[key] = count.get(key, 0) + 1
+            first.setdefault(key, term)
+    ranked = sorted(first, key=lambda key: -count[key])  # stable: loss order breaks ties
+    return [first[key] for key in ranked[:k]]
+
+
+def _key(line: ln.Line) -> frozenset[str]:
+    return frozenset(_terms(line))
+
+
+def _neighbours(line: ln.Line, pool: Sequence[ln.Line]) -> list[ln.Line]:
+    """``line`` with one term dropped, or with one of ``pool``'s terms added."""
+    have = _terms(line)
+    added = [ln.with_summand(line, t) for t in pool if not (_terms(t) & have)]
+    return [*ln.without_each_summand(line), *added]
+
+
+def _local_search(
+    state: SearchState, j: int, lines: list[ln.Line], errors: np.ndarray,
+    pool: Sequence[ln.Line], recordings: Sequence[Dataset], config: SelectionConfig,
+    states: set[str],
+) -> tuple[list[ln.Line], np.ndarray]:  # fmt: skip
+    """Vary the best lines term by term and simulate the variants: ``config.steps`` rounds.
+
+    The lines varied in each round are the two simplest within ``tolerance`` of the best
+    simulation error and the best itself. A stand-in term that the derivative fit preferred is
+    dropped here, and a small term it could not see (a slow or weak effect) is added, as long
+    as the held-out simulation says so."""
+    seen = {_key(line) for line in lines}
+    for _ in range(config.steps):
+        finite = np.isfinite(errors)
+        if not finite.any():
+            break
+        best = float(np.min(errors))
+        ranked = sorted(
+            (_complexity(line, states), float(e), i)
+            for i, (line, e) in enumerate(zip(lines, errors, strict=True))
+            if e <= best * (1 + config.tolerance)
+        )
+        beam = dict.fromkeys([*(i for *_, i in ranked[:2]), int(np.argmin(errors))])
+        new: list[ln.Line] = []
+        for i in beam:
+            for variant in _neighbours(lines[i], pool):
+                key = _key(variant)
+                if key not in seen:
+                    seen.add(key)
+                    new.append(variant)
+        if not new:
+            break
+        lines = [*lines, *new]
+        errors = np.concatenate([errors, _single_errors(state, j, new, recordings, config)])
+    return lines, errors
+
+
 def _single_errors(
     state: SearchState, j: int, lines: Sequence[ln.Line], recordings: Sequence[Dataset],
     config: SelectionConfig,
@@ -407,6 +482,9 @@ def select_by_simulation(
     for j, target in enumerate(contract.targets):
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
         errors = _single_errors(state, j, lines, sims, config)
+        lines, errors = _local_search(
+            state, j, lines, errors, _term_pool(archived, j, config.terms), sims, config, states
+        )
         best = float(np.min(errors))
         if not np.isfinite(best):
             picked.append(derived[j])
@@ -421,10 +499,11 @@ def select_by_simulation(
         line = lines[ranked[0][-1]]
         picked.append(line)
         report["equations"][target] = {  # type: ignore[index]
-            "candidates": [
-                {"line": ln_.text, "simulation_nrmse": float(e)}
-                for ln_, e in zip(lines, errors, strict=True)
+            "candidates": [  # the most accurate dozen
+                {"line": lines[i].text, "simulation_nrmse": float(errors[i])}
+                for i in np.argsort(errors, kind="stable")[:12]
             ],
+            "simulated": len(lines),
             "pareto": _pareto(
                 [
                     (len(ln.summands(ln_.expr)), float(e), ln_.text)
@@ -508,124 +587,6 @@ def simulation_nrmse(
     if program is None:
         return float("inf")
     return dae_error(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
-
-
-def _fitted_lines(state: SearchState, j: int, lines: Sequence[ln.Line]) -> list[np.ndarray | None]:
-    """Each line of equation ``j`` fitted on all of the loop's data (None where it fails)."""
-    out: list[np.ndarray | None] = [None] * len(lines)
-    compiled = compiled_lines(state.contract, lines)
-    if not compiled:
-        return out
-    params = _fold_params(state, j, [sk for _, sk in compiled], folds=False)
-    for c, (i, _) in enumerate(compiled):
-        p = params[c, 0, : lines[i].n_params]
-        if np.all(np.isfinite(p)):
-            out[i] = p
-    return out
-
-
-def select_closed(
-    state: SearchState,
-    de: Equations,
-    ae: Equations,
-    recordings: Sequence[Dataset],
-    config: SelectionConfig | None = None,
-) -> tuple[Equations, dict[str, object]]:
-    """The state equations chosen again, now by how the closed model simulates.
-
-    After the AE loop every algebraic variable of the DE library has an equation, so the model
-    can be simulated as the user will simulate it: only inputs and the boundary played in. One
-    pass over the state equations: each of the current equation's candidate lines (the current
-    line, its pruned variants, the archive's best; fitted on all recordings, the current line
-    with its own parameters) is put in, the closed model is simulated on every recording, and
-    the simplest line within ``tolerance`` of the best error stays. A line that needs an
-    algebraic variable the AE equations do not give is not a candidate. The result replaces
-    ``de`` only if the closed model simulates better; its parameters are then fitted as the
-    search fits them (the caller refits them in the integral form).
-    """
-    config = config or SelectionConfig()
-    contract = state.contract
-    recordings = list(recordings)
-    t0 = np.asarray(recordings[0].t)
-    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
-        return de, {"skipped": "the recordings do not share a time grid"}
-    ae_program = interp.program_of(ae.skeleton())
-    if ae_program is None:
-        return de, {"skipped": "the algebraic equations do not lower to a program"}
-    closed = set(ae.contract.targets)
-    algebraic = {v.name for v in contract.library if v.role == "algebraic"}
-    ae_params = np.asarray(ae.params, dtype=float)
-    states = {v.name for v in contract.states}
-    derived, mappings = ln.split_lines(de.source)
-    current = list(derived)
-    params = [np.asarray(de.params, dtype=float)[list(m)] for m in mappings]
-    archived = _archive_lines(state)
-
-    def error(lines: Sequence[ln.Line], ps: Sequence[np.ndarray]) -> float:
-        source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
-        try:
-            program = interp.lower(source, n_outputs=len(lines))
-        except (interp.LoweringError, ValueError):
-            return float("inf")
-        b = len(recordings)
-        flat = np.concatenate([*ps, np.zeros(1)])[None]
-        sim = simulate_host(
-            program, contract.targets, np.repeat(flat, b, axis=0), recordings,
-            algebraic=(ae_program, ae.contract.targets, np.repeat(ae_params[None], b, axis=0)),
-            substeps=config.substeps, blowup=config.blowup,
-        )  # fmt: skip
-        return float(np.mean(simulation_error(sim, recordings, contract.targets)))
-
-    start = error(current, params)
-    report: dict[str, object] = {"dae_nrmse_before": start, "equations": {}}
-    total = start
-    for j, target in enumerate(contract.targets):
-        lines = [
-            line
-            for line in _candidate_lines(archived, j, current[j], config.candidates)
-            if not (line.variables() & algebraic) - closed
-        ]
-        if not lines or lines[0].text != current[j].text:
-            continue  # the current line itself cannot be closed: nothing to compare with
-        fitted = _fitted_lines(state, j, lines)
-        fitted[0] = params[j]
-        errors = np.full(len(lines), np.inf)
-        for i, (line, p) in enumerate(zip(lines, fitted, strict=True)):
-            if p is not None:
-                errors[i] = error([*current[:j], line, *current[j + 1 :]],
-                                  [*params[:j], p, *params[j + 1 :]])  # fmt: skip
-        best = float(np.min(errors))
-        if not np.isfinite(best):
-            continue
-        k = sorted(
-            (_complexity(line, states), float(e), i)
-            for i, (line, e) in enumerate(zip(lines, errors, strict=True))
-            if e <= best * (1 + config.tolerance)
-        )[0][-1]
-        current[j], params[j] = lines[k], fitted[k]  # type: ignore[assignment]
-        total = float(errors[k])
-        report["equations"][target] = {  # type: ignore[index]
-            "candidates": [
-                {"line": line.text, "dae_nrmse": float(e)}
-                for line, e in zip(lines, errors, strict=True)
-            ],
-            "chosen": lines[k].text,
-        }
-    changed = [
-        t for t, a, b in zip(contract.targets, current, derived, strict=True) if a.text != b.text
-    ]
-    report["dae_nrmse"] = total
-    if not changed or not total < start:
-        report["changed"] = []
-        report["dae_nrmse"] = start
-        return de, report
-    chosen = _assemble(state, current)
-    if chosen is None:
-        report["changed"] = []
-        report["dae_nrmse"] = start
-        return de, report
-    report["changed"] = changed
-    return chosen, report
 
 
 # ----------------------------------------------------------------------------------------------

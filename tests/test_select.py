@@ -9,6 +9,7 @@ import pytest
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import interp, search
+from jaxdmd import lines as ln
 from jaxdmd.data import Dataset
 from jaxdmd.pipeline import run_loop
 from jaxdmd.problems import de_problem
@@ -99,3 +100,56 @@ def test_searches_pool_their_archives_and_terms_are_counted(drift_search):
     freq = inclusion_frequency(chosen, [chosen, one_term])["x"]
     assert freq["p * u"] == 1.0
     assert all(share == 0.5 for t, share in freq.items() if t != "p * u")
+
+
+def _follower(n: int = 3, noise: float = 0.01) -> list[Dataset]:
+    """d x/dt = 0.8 (u - x), d y/dt = 20 (x - y): y follows x fast, its recording is noisy
+    (5 % of its range), so its estimated derivative is smoothed and noisy and the input u, a
+    clean signal that x follows, fits it better than x itself does. A measured algebraic channel
+    w is x - y with a slow error of its own."""
+    t = np.linspace(0.0, 10.0, 1001)
+    out = []
+    for k in range(n):
+        rng = np.random.default_rng(k)
+        u = 1.0 + 0.3 * np.sin((0.7 + 0.3 * k) * t) * (t >= 1.0)
+        x, y = np.empty_like(t), np.empty_like(t)
+        x[0] = y[0] = u[0]
+        for i in range(t.size - 1):
+            xi, yi, h = x[i], y[i], (t[i + 1] - t[i]) / 50
+            for _ in range(50):
+                xi, yi = xi + h * 0.8 * (u[i] - xi), yi + h * 20.0 * (xi - yi)
+            x[i + 1], y[i + 1] = xi, yi
+        w = (x - y) + 0.01 * np.cos(0.5 * t + k)
+        channels = {
+            "x": x + noise * np.ptp(x) * rng.normal(size=t.shape),
+            "y": y + 5 * noise * np.ptp(y) * rng.normal(size=t.shape),
+            "u": u,
+            "w": w,
+        }
+        roles = {"x": "state", "y": "state", "u": "input", "w": "algebraic"}
+        out.append(Dataset.create(t, channels, roles, events=(1.0,)).with_estimated_derivatives())
+    return out
+
+
+def test_a_stand_in_that_wins_on_derivatives_loses_in_simulation():
+    from jaxdmd.select import SelectionConfig, _terms
+
+    recordings = _follower()
+    problem, contract = de_problem(recordings, matched=True, library=("u", "w"))
+    config = search.SearchConfig(
+        n_islands=3, prompts_per_round=2, samples_per_prompt=4, max_rounds=6
+    )
+    state = search.init(problem, contract, jax.random.key(0), config)
+    state = run_loop(state, OfflineProposer.for_problem(problem))
+    by_derivatives = search.final_equations(state)
+    lines = dict(zip(contract.targets, ln.split_lines(by_derivatives.source)[0], strict=True))
+    # the premise: cross-validated derivative error prefers the stand-in u for x in dy/dt
+    assert _terms(lines["y"]) == {"p * y", "p * u"}, lines["y"].text
+    # the candidates alone do not hold the truth; varying them term by term finds it
+    kept, _ = select_by_simulation(state, by_derivatives, recordings, SelectionConfig(steps=0))
+    assert kept.readable()["dy/dt"] == by_derivatives.readable()["dy/dt"]
+    chosen, report = select_by_simulation(state, by_derivatives, recordings)
+    line = ln.split_lines(chosen.source)[0][1]
+    assert _terms(line) == {"p * x", "p * y"}, line.text
+    assert "y" in report["changed"]
+    assert report["coupled_nrmse"] < report["coupled_nrmse_derivative_choice"]
