@@ -243,3 +243,30 @@ def test_andes_runs_the_genrou_case_of_a_psat_51_machine(tmp_path):
     ss.TDS.config.tf, ss.TDS.config.no_tqdm = 2.0, 1
     assert ss.TDS.run() and ss.exit_code == 0
     assert ss.GENROU.M.v[0] == pytest.approx(2 * PH)
+
+
+def test_classical_without_stator_lines_writes_gencls_but_no_andes_case(tmp_path):
+    text = classical_text()
+    d = load_text(tmp_path, text[: text.index("def algebraic")])
+    assert d.ae is None
+    name, numbers = record_numbers(dyr_record(d))
+    assert name == "GENCLS" and numbers == pytest.approx([H, D])
+    with pytest.raises(ExportError, match="x'_d"):
+        andes_case(d)
+    assert andes_case(d, assume={"x'_d": XDP})["GENCLS"][0]["xd1"] == XDP
+
+
+def test_andes_reads_the_dyr_records(tmp_path):
+    pytest.importorskip("andes")
+    from andes.io.psse import _read_dyr_dict
+
+    path = tmp_path / "model.dyr"
+    path.write_text(
+        dyr_record(load_text(tmp_path, classical_text()), bus=31)
+        + dyr_record(load_text(tmp_path, psat_text(), "psat.py"), bus=32)
+    )
+    records = _read_dyr_dict(str(path))
+    assert list(records["GENCLS"].iloc[0]) == pytest.approx([31, 1, H, D])
+    genrou = list(records["GENROU"].iloc[0])
+    assert len(genrou) == 16 and genrou[:2] == [32, 1]
+    assert genrou[2] == pytest.approx(TD0, rel=1e-3) and genrou[6] == pytest.approx(PH, rel=1e-3)
