@@ -85,8 +85,11 @@ def run_diagnose(args: argparse.Namespace) -> int:
     c = result.cause
     progress.console.print(f"\n[bold]Cause ({c.kind})[/bold]: {c.summary}")
     if result.extended is not None:
-        for k, v in result.extended.readable().items():
-            progress.console.print(f"  {k} = {v}")
+        from jaxdmd import pretty
+
+        e = result.extended
+        for target, rhs in zip(e.contract.targets, e.readable().values(), strict=True):
+            progress.console.print(f"  {pretty.equation(target, rhs)}", markup=False)
     before = result.metrics.get("given", result.metrics["refit"])["nrmse"]
     after = result.metrics.get("extended", result.metrics["refit"])["nrmse"]
     progress.console.print(

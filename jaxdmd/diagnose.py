@@ -356,6 +356,22 @@ class Diagnosis:
         after = self.metrics.get("extended", self.metrics["refit"])["nrmse"]
         return float(before / after) if after > 0 else float("inf")
 
+    def physical(self) -> dict[str, Any]:
+        """The physical parameters of each model (``given``, ``refit``, ``extended``:
+        :func:`jaxdmd.physical.physical_parameters` of its state equations, values without
+        standard errors); a model that cannot be read is left out."""
+        from jaxdmd.physical import physical_parameters
+
+        out: dict[str, Any] = {}
+        for name, e in (("given", self.given), ("refit", self.refit), ("extended", self.extended)):
+            if e is None:
+                continue
+            try:
+                out[name] = physical_parameters(e)
+            except Exception:  # a report must not fail on the mapping
+                continue
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         def eq(e: Equations | None) -> dict[str, Any] | None:
             if e is None:
@@ -388,6 +404,7 @@ class Diagnosis:
                 "extended": eq(self.extended),
             },
             "coefficients": self.coefficients,
+            "physical_parameters": {k: r.to_dict() for k, r in self.physical().items()},
             "extension": {"rounds": self.extension_rounds, "joined": list(self.joined)},
             "wall_time_s": self.wall_time_s,
             "window_s": self.window,

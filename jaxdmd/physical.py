@@ -604,7 +604,11 @@ def physical_parameters(
         pair: dict[str, Callable] = {}
 
         def mean_pair(c, state, volt, sign):
-            """sign * (c(state) - c(volt)) / 2, or the one that is there."""
+            """sign * (c(state) - c(volt)) / 2, or the one that is there. The classical
+            stator's e_q is the constant E' (state ``"1"``): its coefficient is E' times the
+            voltage's, so only the voltage's is used."""
+            if state == "1":
+                state = None
             if state and state in c and volt in c:
                 return lambda t: sign * (c[state](t) - c[volt](t)) / 2
             if volt in c:

@@ -341,12 +341,59 @@ def _columns(results: dict[str, object]) -> list[str]:
     return [k for k in _COLUMNS if k in results]
 
 
+def physical_table(reports: dict) -> list[str]:
+    """The ``## Physical parameters`` section of a diagnosis: one column per model (given,
+    refitted, extended), each parameter :func:`jaxdmd.physical.physical_parameters` maps; empty
+    when no model maps to a machine-model family."""
+    cols = [k for k in _COLUMNS if k in reports]
+    if not any(reports[k].family for k in cols):
+        return []
+    out = ["## Physical parameters", ""]
+    out.append(
+        "Family: "
+        + ", ".join(f"{_COLUMNS[k]} **{reports[k].family or 'none'}**" for k in cols)
+        + " (`jaxdmd.physical`; on the data's per-unit base; no standard errors here)."
+    )
+    names: list[str] = []
+    for k in cols:
+        names += [p.name for p in reports[k].parameters if p.name not in names]
+    out += ["", "| parameter | unit | " + " | ".join(_COLUMNS[k] for k in cols) + " | note |"]
+    out.append("|---|---|" + "---|" * len(cols) + "---|")
+    for n in names:
+        found = [reports[k].get(n) for k in cols]
+        unit = next(p.unit for p in found if p is not None)
+        cells = []
+        for p in found:
+            if p is None:
+                cells.append("-")
+            elif p.note == "not in the model":
+                cells.append("0 (not in the model)")
+            else:
+                cells.append(f"{p.value:.6g}" if np.isfinite(p.value) else str(p.value))
+        note = next((p.note for p in found if p is not None and p.note != "not in the model"), "")
+        out.append(f"| {n} | {unit} | " + " | ".join(cells) + f" | {note} |")
+    for k in cols:
+        bad = [e for e in reports[k].equations if not e.matched]
+        if bad:
+            terms = "; ".join(
+                f"{e.equation}: {', '.join(f'`{t}`' for t in e.unmatched) or 'missing terms'}"
+                for e in bad
+            )
+            out.append(f"\n{_COLUMNS[k]}: terms no family has: {terms}.")
+    out.append("")
+    return out
+
+
 def report_markdown(d: Diagnosis) -> str:
     """``report.md``: the cause, the evidence, the errors, the extension and the gain.
 
     Every table and model says whether it used the parameters the model came with (``given``)
     or parameters refitted on the training data; a model without parameters is only refitted.
+    The models are printed as an engineer writes them (:mod:`jaxdmd.pretty`), followed by their
+    physical parameters side by side (:func:`physical_table`) when one maps to a family.
     """
+    from jaxdmd import pretty
+
     states = d.model.targets
     out = [f"# Diagnosis of `{d.model.name}`", ""]
     out += [
@@ -419,8 +466,18 @@ def report_markdown(d: Diagnosis) -> str:
         if eq is None:
             continue
         out += [f"{_COLUMNS[name]}:", "", "```"]
-        out += [f"{k} = {v}" for k, v in eq.readable().items()]
+        out += [
+            pretty.equation(t, rhs)
+            for t, rhs in zip(eq.contract.targets, eq.readable().values(), strict=True)
+        ]
         out += ["```", ""]
+    if d.extended is not None:
+        out += [
+            "(As Python: the extended model in `extended_model.py`, every model in "
+            "`diagnosis.json`.)",
+            "",
+        ]
+    out += physical_table(d.physical())
     if d.extended is not None:
         out.append(
             f"Extension: {d.extension_rounds} rounds of the search seeded with the model"

@@ -1,12 +1,14 @@
 """``jaxdmd`` (also ``python -m jaxdmd``, ``python -m jaxdmd.run``): the command line
-(arguments -> config -> call -> files). Subcommands ``discover``, ``simulate``, ``diagnose``.
+(arguments -> config -> call -> files). Subcommands ``discover``, ``simulate``, ``diagnose``,
+``export``.
 
 Without a subcommand it is ``discover``; with no arguments at all it runs the built-in benchmark
 (the paper's protocol on the IEEE 39-bus system, generator at bus 31) with the offline proposer:
 :func:`jaxdmd.pipeline.discover` (the DE loop, then the AE loop), and writes the discovered
 model, the score trajectories and ``summary.json`` into the output folder (schema in
 ``docs/run.md``), with ``run.log`` (the progress lines). ``simulate`` writes a benchmark dataset
-(:mod:`jaxdmd.grid.cli`), ``diagnose`` explains a model's error (:mod:`jaxdmd.cli_diagnose`);
+(:mod:`jaxdmd.grid.cli`), ``diagnose`` explains a model's error (:mod:`jaxdmd.cli_diagnose`),
+``export`` writes a run's model for PSS/E, ANDES or as a module (:mod:`jaxdmd.cli_export`);
 see ``jaxdmd --help``.
 """
 
@@ -30,12 +32,14 @@ from jaxdmd.search import SearchConfig
 DEFAULT_OUT = "runs/latest"
 
 
-COMMANDS = ("discover", "simulate", "diagnose")
+COMMANDS = ("discover", "simulate", "diagnose", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``jaxdmd`` parser: the subcommands ``discover``, ``simulate`` and ``diagnose``."""
+    """The ``jaxdmd`` parser: the subcommands ``discover``, ``simulate``, ``diagnose`` and
+    ``export``."""
     from jaxdmd.cli_diagnose import add_diagnose_arguments
+    from jaxdmd.cli_export import add_export_arguments
     from jaxdmd.grid.cli import add_simulate_arguments
 
     parser = argparse.ArgumentParser(
@@ -78,6 +82,17 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     add_diagnose_arguments(diag)
+    exp = sub.add_parser(
+        "export",
+        help="write a discovered model as a PSS/E record, an ANDES case or a Python module",
+        description=(
+            "Write the model of RUN_DIR (its model.py) for other simulators: the PSS/E .dyr "
+            "record and the ANDES case of the standard machine model it maps to (GENCLS, "
+            "GENSAL, GENROU; assumptions stated in the files), or, for any structure, jaxdmd's "
+            "Python module, which jaxdmd.load(path).simulate(recording) rolls out."
+        ),
+    )
+    add_export_arguments(exp)
     return parser
 
 
@@ -291,6 +306,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from jaxdmd.cli_diagnose import run_diagnose
 
             return run_diagnose(args)
+        if args.command == "export":
+            from jaxdmd.cli_export import run_export
+
+            return run_export(args)
         return run_discover(args)
     except KeyboardInterrupt:
         print("interrupted; continue with --resume", file=sys.stderr)

@@ -199,7 +199,7 @@ def test_top_level_help_fits_one_screen():
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert len(lines) <= 30, result.stdout
-    for command in ("discover", "simulate", "diagnose"):
+    for command in ("discover", "simulate", "diagnose", "export"):
         assert any(line.split()[:1] == [command] for line in lines), result.stdout
 
 
@@ -224,7 +224,7 @@ def test_every_option_has_help():
 
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    assert set(sub.choices) == {"discover", "simulate", "diagnose"}
+    assert set(sub.choices) == {"discover", "simulate", "diagnose", "export"}
     for name, command in sub.choices.items():
         for action in command._actions:
             if action.option_strings and action.help != argparse.SUPPRESS:

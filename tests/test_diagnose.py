@@ -109,7 +109,15 @@ def test_missing_damping_is_named_recovered_and_pays(damping_data, tmp_path):
     write_report(tmp_path, result)
     saved = json.loads((tmp_path / "diagnosis.json").read_text())
     assert saved["cause"]["equation"] == "omega" and saved["gain"] >= 10
-    assert (tmp_path / "report.md").read_text().count("omega") > 3
+    report = (tmp_path / "report.md").read_text()
+    assert report.count("omega") > 3
+    # the physical parameters before and after: the extension brings in the damping
+    assert "extended" in report.split("## Physical parameters", 1)[1]
+    physical = saved["physical_parameters"]
+    assert physical["refit"]["family"] == "classical"
+    assert physical["extended"]["family"] == "classical"
+    damping = {p["name"]: p for p in physical["extended"]["parameters"]}["D"]
+    assert damping["value"] == pytest.approx(D, rel=0.1)
     assert (tmp_path / "trajectories.png").stat().st_size > 10_000
 
 
@@ -313,7 +321,19 @@ def test_cli_diagnose_reports_given_or_refitted_parameters_truthfully(
     assert (saved["models"]["given"] is not None) is given
     assert saved["errors_of"] == ("given" if given else "refit")
     assert (out / "trajectories.png").stat().st_size > 10_000
+    # the equations as an engineer writes them, and the physical parameters of each model
+    models = report.split("## Models", 1)[1]
+    assert "dδ/dt = " in models and "dω/dt = " in models
+    assert "jnp." not in models and "d_omega" not in models
+    physical = report.split("## Physical parameters", 1)[1]
+    assert "**classical**" in physical
+    rows = {r.split("|")[1].strip(): r.split("|")[3:-2] for r in physical.splitlines() if "|" in r}
+    refit_h = float(rows["H"][-1])
+    assert refit_h == pytest.approx(M / 2, rel=0.1)
+    assert saved["physical_parameters"]["refit"]["family"] == "classical"
     if given:
+        assert float(rows["H"][0]) == pytest.approx(M / 2 / 1.3, rel=1e-3)
+        assert float(rows["D"][0]) == pytest.approx(0.5 * D / 1.3, rel=1e-3)
         assert saved["models"]["given"]["params"][1] == pytest.approx(1.3 / M)
         assert set(saved["models"]["given"]["nmse"]) == {"delta", "omega"}
         assert set(saved["metrics"]) == {"given", "refit"}

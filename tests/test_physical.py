@@ -412,3 +412,41 @@ def test_smaller_families_and_their_stator(family):
     if family == "two-axis":
         _close(rep, "T'_q0", TQ0)
         _close(rep, "x_q - x'_q", XQ - XQP)
+
+
+def test_classical_stator_with_e_prime_not_one():
+    """The classical stator's constant is E'/det times X: only the voltages' coefficients give
+    the reactance (E' = 1.12 here, which the constant must not bias)."""
+    e1, xdp = 1.12, 0.25
+    de_c = Contract(
+        loop="DE",
+        targets=("delta", "omega"),
+        states=(_var("delta", "state"), _var("omega", "state")),
+        library=(_var("P_m", "input"), _var("P_e", "algebraic")),
+    )
+    src = (
+        "def equation(delta, omega, P_m, P_e, p):\n"
+        "    d_delta = p[0] * (omega - 1)\n"
+        "    d_omega = p[1] * P_m + p[2] * P_e\n"
+        "    return d_delta, d_omega\n"
+    )
+    ae_c = Contract(
+        loop="AE",
+        targets=("i_d", "i_q", "P_e"),
+        states=de_c.states,
+        library=(_var("V", "boundary"), _var("theta", "boundary")),
+        function_name="algebraic",
+    )
+    ae_src = (
+        "def algebraic(delta, omega, V, theta, p):\n"
+        "    i_d_ = p[0] + p[1] * V * jnp.cos(delta - theta)\n"
+        "    i_q_ = p[2] * V * jnp.sin(delta - theta)\n"
+        "    P_e_ = p[3] * V * jnp.sin(delta - theta)\n"
+        "    return i_d_, i_q_, P_e_\n"
+    )
+    de = _equations(de_c, src, [OMEGA_B, 1 / M, -1 / M])
+    ae = _equations(ae_c, ae_src, [e1 / xdp, -1 / xdp, 1 / xdp, e1 / xdp])
+    rep = physical_parameters(de, ae)
+    assert rep.family == "classical"
+    _close(rep, "x'_d", xdp)
+    _close(rep, "r_a", 0.0)

@@ -1,0 +1,62 @@
+"""``jaxdmd export RUN_DIR``: a discovered model written for other simulators (arguments ->
+:func:`jaxdmd.export.export` -> files)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from jaxdmd.export import FORMATS
+
+
+def _formats(text: str) -> list[str]:
+    names = [f.strip() for f in text.split(",") if f.strip()]
+    bad = [f for f in names if f not in FORMATS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown format(s) {bad or text!r}; a comma-separated list of {', '.join(FORMATS)}"
+        )
+    return names
+
+
+def add_export_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "run", metavar="RUN_DIR", help="a discovery's output folder (its model.py) or a model.py"
+    )
+    parser.add_argument(
+        "--format",
+        type=_formats,
+        default=list(FORMATS),
+        help="comma-separated: dyr (PSS/E record), andes (ANDES JSON case, a single machine on "
+        "an infinite bus), py (jaxdmd's module, any structure); default: all",
+    )
+    parser.add_argument(
+        "--out", default=None, help="output folder (default: RUN_DIR/export)", metavar="DIR"
+    )
+    parser.add_argument("--bus", type=int, default=1, help="the .dyr record's bus number")
+    parser.add_argument("--id", default="1", help="the .dyr record's machine id")
+    parser.add_argument("--p0", type=float, default=0.8, help="ANDES case: active power (pu)")
+    parser.add_argument("--v0", type=float, default=1.0, help="ANDES case: terminal voltage (pu)")
+    parser.add_argument(
+        "--x-line", type=float, default=0.3, help="ANDES case: line reactance to the infinite bus"
+    )
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from jaxdmd.export import export
+    from jaxdmd.pipeline import load
+
+    discovery = load(args.run)
+    run = Path(args.run)
+    out = Path(args.out) if args.out else (run if run.is_dir() else run.parent) / "export"
+    andes = {"p0": args.p0, "v0": args.v0, "x_line": args.x_line}
+    written = export(discovery, out, args.format, bus=args.bus, machine_id=args.id, andes=andes)
+    failed = 0
+    for fmt, what in written.items():
+        if isinstance(what, Path):
+            print(f"{fmt}: {what}")
+        else:
+            failed += 1
+            print(f"{fmt}: not written: {what}", file=sys.stderr)
+    return 2 if failed == len(written) else (1 if failed else 0)

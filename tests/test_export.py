@@ -1,0 +1,272 @@
+"""Export of a discovered model (jaxdmd.export): PSS/E records, ANDES cases, the Python module.
+
+The ANDES round trip (skipped without ANDES: ``pip install -e .[export]``) writes a classical
+machine with known parameters on a single-machine-infinite-bus system, simulates a fault in
+ANDES, plays ANDES's terminal voltage into jaxdmd's rollout of the same model and compares the
+rotor angle and speed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import jaxdmd
+from jaxdmd.data import Dataset
+from jaxdmd.export import ExportError, andes_case, dyr_record, export, standard_machine
+
+H, D, XDP, FN = 4.0, 2.0, 0.25, 60.0
+P0, V0, XL = 0.8, 1.05, 0.3  # the SMIB operating point and line
+
+
+def smib_e_prime() -> float:
+    """E' of the classical machine at the SMIB operating point (r_a = 0)."""
+    theta = math.asin(P0 * XL / V0)
+    v = V0 * np.exp(1j * theta)
+    current = (v - 1.0) / (1j * XL)
+    return float(abs(v + 1j * XDP * current))
+
+
+def classical_text(extra: str = "", extra_params: tuple[float, ...] = ()) -> str:
+    m, e1 = 2 * H, smib_e_prime()
+    de = [2 * math.pi * FN, 1 / m, -1 / m, -D / m, *extra_params]
+    ae = [e1 / XDP, -1 / XDP, 1 / XDP, e1 / XDP]
+    return (
+        "def equation(delta, omega, P_m, P_e, p):\n"
+        "    d_delta = p[0] * (omega - 1)\n"
+        f"    d_omega = p[1] * P_m + p[2] * P_e + p[3] * (omega - 1){extra}\n"
+        "    return d_delta, d_omega\n\n"
+        f"DE_PARAMS = {de!r}\n"
+        "DE_TARGETS = ['delta', 'omega']\n\n"
+        "def algebraic(delta, V, theta, p):\n"
+        "    i_d_ = p[0] + p[1] * V * jnp.cos(delta - theta)\n"
+        "    i_q_ = p[2] * V * jnp.sin(delta - theta)\n"
+        "    P_e_ = p[3] * V * jnp.sin(delta - theta)\n"
+        "    return i_d_, i_q_, P_e_\n\n"
+        f"AE_PARAMS = {ae!r}\n"
+        "AE_TARGETS = ['i_d', 'i_q', 'P_e']\n"
+    )
+
+
+# the bus-31 machine of the benchmark (PSAT 5.1, 100 MVA base), as in test_physical
+PH, XD, XDP5, XQ, XQP = 30.3, 0.295, 0.0697, 0.282, 0.170
+TD0, TQ0, TQ02, RA = 6.56, 1.5, 0.04, 0.0027
+GAMMA_Q = (XDP5 / XQP) * (TQ02 / TQ0) * (XQ - XQP)
+
+
+def psat_text() -> str:
+    m, k = 2 * PH, 1.0 / (RA**2 + XDP5**2)
+    de = [2 * math.pi * 60, 1 / m, -1 / m, -1 / TD0, 1 / TD0, -(XD - XDP5) / TD0]
+    de += [-1 / TQ0, (XQ - XQP - GAMMA_Q) / TQ0]
+    de += [1 / TQ02, -1 / TQ02, (XQP - XDP5 + GAMMA_Q) / TQ02]
+    ae = [k * RA, -k * RA, k * XDP5, -k * XDP5, k * RA, -k * RA, -k * XDP5, k * XDP5]
+    vd, vq = "V * jnp.sin(delta - theta)", "V * jnp.cos(delta - theta)"
+    return (
+        "def equation(delta, omega, e_qp, e_dp, e_dpp, P_m, v_f, i_d, i_q, P_e, p):\n"
+        "    d_delta = p[0] * (omega - 1)\n"
+        "    d_omega = p[1] * P_m + p[2] * P_e\n"
+        "    d_e_qp = p[3] * e_qp + p[4] * v_f + p[5] * i_d\n"
+        "    d_e_dp = p[6] * e_dp + p[7] * i_q\n"
+        "    d_e_dpp = p[8] * e_dp + p[9] * e_dpp + p[10] * i_q\n"
+        "    return d_delta, d_omega, d_e_qp, d_e_dp, d_e_dpp\n\n"
+        f"DE_PARAMS = {de!r}\n"
+        "DE_TARGETS = ['delta', 'omega', 'e_qp', 'e_dp', 'e_dpp']\n\n"
+        "def algebraic(delta, e_qp, e_dpp, V, theta, p):\n"
+        f"    i_d_ = p[0] * e_dpp + p[1] * {vd} + p[2] * e_qp + p[3] * {vq}\n"
+        f"    i_q_ = p[4] * e_qp + p[5] * {vq} + p[6] * e_dpp + p[7] * {vd}\n"
+        "    return i_d_, i_q_\n\n"
+        f"AE_PARAMS = {ae!r}\n"
+        "AE_TARGETS = ['i_d', 'i_q']\n"
+    )
+
+
+def load_text(tmp_path, text: str, name: str = "model.py"):
+    path = tmp_path / name
+    path.write_text(text)
+    return jaxdmd.load(path)
+
+
+def record_numbers(record: str) -> tuple[str, list[float]]:
+    """The model name and the numbers of a .dyr record (what precedes the '/')."""
+    body = record.split("/")[0].split()
+    return body[1].strip("'"), [float(x) for x in body[3:]]
+
+
+def test_classical_maps_to_gencls_exactly(tmp_path):
+    d = load_text(tmp_path, classical_text())
+    m = standard_machine(d)
+    assert (m.family, m.model, m.assumed) == ("classical", "GENCLS", ())
+    assert m.params["H"] == pytest.approx(H) and m.params["D"] == pytest.approx(D)
+    assert m.params["x'_d"] == pytest.approx(XDP) and m.params["f_n"] == pytest.approx(FN)
+    record = dyr_record(d, bus=31, machine_id="1")
+    assert record.startswith("31 'GENCLS' 1 ")
+    name, numbers = record_numbers(record)
+    assert name == "GENCLS" and numbers == pytest.approx([H, D])
+    assert "jaxdmd: discovered classical model" in record and "MBASE" in record
+
+
+def test_psat_51_maps_to_genrou_with_its_assumptions_stated(tmp_path):
+    d = load_text(tmp_path, psat_text())
+    m = standard_machine(d)
+    assert (m.family, m.model) == ("psat-5.1", "GENROU")
+    name, n = record_numbers(dyr_record(m))
+    assert name == "GENROU" and len(n) == 14
+    # T'do T''do T'qo T''qo H D Xd Xq X'd X'q X''d Xl S(1.0) S(1.2)
+    identified = [TD0, None, TQ0, TQ02, PH, 0.0, XD, XQ, XDP5, XQP]
+    for value, true in zip(n, identified, strict=False):
+        if true is not None:
+            assert value == pytest.approx(true, rel=1e-3, abs=1e-9)
+    assert n[1] == pytest.approx(0.03) and n[10] == pytest.approx(0.8 * XDP5, rel=1e-4)
+    assert n[11:] == [0.0, 0.0, 0.0]
+    record = dyr_record(m)
+    for name in ("T''_d0", "x''_d", "x_l", "S(1.0)"):
+        assert name in record.split("/", 1)[1]  # stated in the comment
+    assert "PSAT 5.1 uses x'_d" in record
+    # an assumption given replaces the default
+    _, n = record_numbers(dyr_record(d, assume={"T''_d0": 0.05, "x''_d": 0.05}))
+    assert n[1] == pytest.approx(0.05) and n[10] == pytest.approx(0.05)
+    case = andes_case(m)
+    assert case["GENROU"][0]["xq2"] == case["GENROU"][0]["xd2"]
+
+
+def test_non_standard_structure_is_refused_and_written_as_a_module(tmp_path):
+    d = load_text(tmp_path, classical_text(" + p[4] * P_e * omega", (0.01,)))
+    with pytest.raises(ExportError, match=r"not a standard|match no standard") as err:
+        standard_machine(d)
+    assert "'py'" in str(err.value)
+    written = export(d, tmp_path / "out", ("dyr", "andes", "py"))
+    assert isinstance(written["dyr"], str) and "'py'" in written["dyr"]
+    assert isinstance(written["andes"], str)
+    assert written["py"] == tmp_path / "out" / "model.py"
+    with pytest.raises(ExportError):
+        export(d, tmp_path / "out", ("dyr",), strict=True)
+
+
+def test_exported_module_simulates_the_same_trajectory(tmp_path):
+    d = load_text(tmp_path, classical_text())
+    t = np.linspace(0.0, 3.0, 601)
+    theta0 = math.asin(P0 * XL / V0)
+    dip = (t >= 1.0) & (t < 1.1)
+    channels = {
+        "delta": np.full_like(t, theta0 + 0.17),
+        "omega": np.ones_like(t),
+        "P_m": np.full_like(t, P0),
+        "V": np.where(dip, 0.3, V0),
+        "theta": np.where(dip, theta0 + 0.1, theta0),
+    }
+    roles = {"delta": "state", "omega": "state", "P_m": "input", "V": "boundary"}
+    ds = Dataset.create(t, channels, {**roles, "theta": "boundary"}, events=(1.0, 1.1))
+    written = export(d, tmp_path / "export", ("py",))
+    again = jaxdmd.load(written["py"])
+    a, b = d.simulate(ds), again.simulate(ds)
+    for s in ("delta", "omega"):
+        np.testing.assert_array_equal(np.asarray(a[s]), np.asarray(b[s]))
+    assert np.ptp(np.asarray(a["delta"])) > 0.01  # the fault moves the rotor
+
+
+def test_cli_export_writes_the_files(tmp_path, capsys):
+    from jaxdmd.run import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.py").write_text(classical_text())
+    assert main(["export", str(run), "--format", "dyr,andes", "--bus", "31"]) == 0
+    out = run / "export"
+    assert (out / "model.dyr").read_text().startswith("31 'GENCLS' 1 ")
+    case = json.loads((out / "andes_case.json").read_text())
+    assert case["GENCLS"][0]["M"] == pytest.approx(2 * H)
+    (run / "model.py").write_text(psat_text().replace("p[2] * P_e\n", "p[2] * P_e * e_qp\n"))
+    assert main(["export", str(run), "--format", "dyr"]) == 2
+    assert "not written" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["export", str(run), "--format", "xml"])
+
+
+def andes_recording(case_path, tf: float = 5.0) -> Dataset:
+    """ANDES's fault simulation of the case as a recording (its own time steps)."""
+    import andes
+
+    andes.config_logger(stream_level=40)
+    ss = andes.load(str(case_path), setup=True, no_output=True, default_config=True)
+    ss.PFlow.run()
+    ss.TDS.config.tf = tf
+    ss.TDS.config.tstep = 0.002
+    ss.TDS.config.no_tqdm = 1
+    ss.TDS.run()
+    ts, g = ss.dae.ts, ss.GENCLS
+    t = np.asarray(ts.t)
+    ch = {
+        "delta": ts.x[:, g.delta.a[0]],
+        "omega": ts.x[:, g.omega.a[0]],
+        "P_m": ts.y[:, g.tm.a[0]],
+        "P_e": ts.y[:, g.Pe.a[0]],
+        "V": ts.y[:, g.v.a[0]],
+        "theta": ts.y[:, g.a.a[0]],
+    }
+    keep = np.concatenate([np.diff(t) > 1e-9, [True]])
+    roles = {"delta": "state", "omega": "state", "P_m": "input", "P_e": "algebraic"}
+    roles |= {"V": "boundary", "theta": "boundary"}
+    return Dataset.create(t[keep], {k: np.asarray(v)[keep] for k, v in ch.items()}, roles)
+
+
+def test_andes_simulates_the_exported_classical_machine_as_jaxdmd_does(tmp_path):
+    pytest.importorskip("andes")
+    d = load_text(tmp_path, classical_text())
+    path = tmp_path / "smib.json"
+    path.write_text(json.dumps(andes_case(d, p0=P0, v0=V0, x_line=XL, fault=(1.0, 1.1))))
+    rec = andes_recording(path)
+    theta = math.asin(P0 * XL / V0)
+    v = V0 * np.exp(1j * theta)
+    e = v + 1j * XDP * (v - 1.0) / (1j * XL)  # E' at the operating point: ANDES's power flow
+    assert float(rec["delta"][0]) == pytest.approx(float(np.angle(e)), abs=1e-6)
+    sim = d.simulate(rec)  # ANDES's terminal voltage played in, P_e from the exported stator
+    assert not sim.diverged
+    for s in ("delta", "omega"):
+        y, yh = np.asarray(rec[s]), np.asarray(sim[s])
+        r2 = 1 - np.sum((y - yh) ** 2) / np.sum((y - y.mean()) ** 2)
+        assert r2 >= 0.999, (s, r2)
+    assert np.ptp(np.asarray(rec["omega"])) > 1e-3  # the fault did swing the machine
+
+
+def test_andes_runs_the_genrou_case_of_a_psat_51_machine(tmp_path):
+    """Not exact (the assumptions of GENROU), but ANDES initialises and simulates it."""
+    andes = pytest.importorskip("andes")
+    d = load_text(tmp_path, psat_text())
+    path = tmp_path / "genrou.json"
+    path.write_text(json.dumps(andes_case(d, p0=5.0, v0=1.0, x_line=0.05)))
+    andes.config_logger(stream_level=40)
+    ss = andes.load(str(path), setup=True, no_output=True, default_config=True)
+    assert ss.PFlow.run()
+    ss.TDS.config.tf, ss.TDS.config.no_tqdm = 2.0, 1
+    assert ss.TDS.run() and ss.exit_code == 0
+    assert ss.GENROU.M.v[0] == pytest.approx(2 * PH)
+
+
+def test_classical_without_stator_lines_writes_gencls_but_no_andes_case(tmp_path):
+    text = classical_text()
+    d = load_text(tmp_path, text[: text.index("def algebraic")])
+    assert d.ae is None
+    name, numbers = record_numbers(dyr_record(d))
+    assert name == "GENCLS" and numbers == pytest.approx([H, D])
+    with pytest.raises(ExportError, match="x'_d"):
+        andes_case(d)
+    assert andes_case(d, assume={"x'_d": XDP})["GENCLS"][0]["xd1"] == XDP
+
+
+def test_andes_reads_the_dyr_records(tmp_path):
+    pytest.importorskip("andes")
+    from andes.io.psse import _read_dyr_dict
+
+    path = tmp_path / "model.dyr"
+    path.write_text(
+        dyr_record(load_text(tmp_path, classical_text()), bus=31)
+        + dyr_record(load_text(tmp_path, psat_text(), "psat.py"), bus=32)
+    )
+    records = _read_dyr_dict(str(path))
+    assert list(records["GENCLS"].iloc[0]) == pytest.approx([31, 1, H, D])
+    genrou = list(records["GENROU"].iloc[0])
+    assert len(genrou) == 16 and genrou[:2] == [32, 1]
+    assert genrou[2] == pytest.approx(TD0, rel=1e-3) and genrou[6] == pytest.approx(PH, rel=1e-3)
