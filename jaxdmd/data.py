@@ -645,7 +645,7 @@ def parse_times(values: Any, column: str = "t") -> np.ndarray:
         return (ns - ns[0]).astype(np.int64) / 1e9
     if arr.dtype.kind in "biuf":
         return arr.astype(np.float64)
-    cells = [v if isinstance(v, str) else str(v) for v in arr.ravel()]
+    cells = [str(v) for v in arr.ravel()]
     try:
         return np.array([float(c) for c in cells], dtype=np.float64)
     except ValueError:
