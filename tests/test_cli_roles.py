@@ -91,3 +91,15 @@ def test_without_sidecar_or_flags_the_error_names_the_flags(csv, capsys):
 def test_diagnose_takes_the_role_flags():
     a = parse_args(["diagnose", "--data", "a.csv", "--model", "classical", "--states", "x,y"])
     assert role_flags(a) == {"x": ("state", "--states"), "y": ("state", "--states")}
+
+
+def test_diagnose_runs_on_a_csv_without_sidecar(csv, tmp_path, capsys):
+    model = tmp_path / "lag.py"
+    model.write_text("def equation(x, u, p):\n    return (p[0] * x + p[1] * u,)\n")
+    out = tmp_path / "report"
+    code = main([
+        "diagnose", "--data", str(csv), "--model", str(model), "--rounds", "0",
+        "--states", "x", "--role", "u=input", "--role", "V=boundary", "--out", str(out),
+    ])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    assert (out / "report.md").exists()
