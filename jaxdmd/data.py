@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike
 from jaxdmd.whitelist import invalid_variable_name
 
 __all__ = [
+    "COMTRADE_SUFFIXES",
     "DERIVATIVE_PREFIX",
     "METHODS",
     "MIN_SAMPLES",
@@ -1173,7 +1174,8 @@ class Dataset(eqx.Module):
         label: str | None = None,
         **diff_kw: Any,
     ) -> Dataset:
-        """Load a ``.npz`` written by `save`, or a ``.csv`` with its JSON sidecar.
+        """Load a ``.npz`` written by `save`, a ``.csv`` with its JSON sidecar, or a COMTRADE
+        recording (``.cfg`` with its ``.dat``, or ``.cff``; `_load_comtrade`).
 
         The sidecar is ``<path>.json`` or ``<path without suffix>.json``; it holds ``roles`` and
         optionally ``units``, ``events``, ``label`` and ``time`` (the time column; default: a
@@ -1191,13 +1193,18 @@ class Dataset(eqx.Module):
                 return _load_npz(path, roles, units, events, label)
             if path.suffix == ".csv":
                 return _load_csv(path, roles, units, events, label, diff_kw)
+            if path.suffix.lower() in COMTRADE_SUFFIXES:
+                return _load_comtrade(path, roles, units, events, label, diff_kw)
         except DataError as err:
             raise _in_file(err, path) from None
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as err:
             # unreadable or malformed files (a damaged .npz, bad metadata): a DataError too
             what = type(err).__name__
             raise DataError(f"{path}: cannot be read as a jaxdmd dataset ({what}: {err})") from None
-        raise DataError(f"load: unknown file type {path.suffix!r} of {path}; use .npz or .csv")
+        raise DataError(
+            f"load: unknown file type {path.suffix!r} of {path}; use .npz, .csv or COMTRADE "
+            "(.cfg with its .dat, or .cff)"
+        )
 
     @classmethod
     def from_frame(
@@ -1288,28 +1295,31 @@ def _array(x: Any) -> np.ndarray:
 
 
 def stored_roles(path: str | Path) -> dict[str, str]:
-    """The roles a data file carries: a CSV's sidecar ``roles`` or an ``.npz``'s; ``{}`` when
-    there are none (a CSV without a sidecar)."""
+    """The roles a data file carries: a CSV's (or COMTRADE file's) sidecar ``roles`` or an
+    ``.npz``'s; ``{}`` when there are none (no sidecar)."""
     path = Path(path)
     if path.suffix == ".npz" and path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if "meta" in z.files:
                 return dict(json.loads(str(z["meta"])).get("roles", {}))
         return {}
-    meta = _read_sidecar(path) if path.suffix == ".csv" else None
+    meta = _read_sidecar(path) if path.suffix.lower() in (".csv", *COMTRADE_SUFFIXES) else None
     roles = (meta or {}).get("roles", {})
     return dict(roles) if isinstance(roles, Mapping) else {}
 
 
 def data_columns(path: str | Path) -> list[str]:
     """The channel columns of a data file, which need a role: a CSV's header without its time
-    column and the ``d/dt`` columns, or an ``.npz``'s channel names."""
+    column and the ``d/dt`` columns, an ``.npz``'s channel names, or a COMTRADE file's analog
+    channels."""
     path = Path(path)
     if not path.exists():
         raise DataFileNotFound(f"{path}: not found (no such data file)")
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:
             return list(json.loads(str(z["meta"]))["names"]) if "meta" in z.files else []
+    if path.suffix.lower() in COMTRADE_SUFFIXES:
+        return [str(c).strip() for c in _comtrade_record(path).analog_channel_ids]
     with path.open(newline="") as f:
         header = next((r for r in csv.reader(f) if r and not r[0].lstrip().startswith("#")), [])
     header = [h.strip() for h in header]
@@ -1476,6 +1486,95 @@ def _load_csv(
         derivatives=ders or None,
         events=tuple(events),
         label=str(label),
+        **diff_kw,
+    )
+
+
+COMTRADE_SUFFIXES: tuple[str, ...] = (".cfg", ".cff")
+"""File suffixes read as COMTRADE (IEEE C37.111) through the optional package ``comtrade``."""
+
+
+def _comtrade_record(path: Path) -> Any:
+    """The recording read by the ``comtrade`` package (optional: ``pip install
+    'jaxdmd[comtrade]'``), in float64."""
+    try:
+        import comtrade
+    except ImportError:
+        raise DataError(
+            f"{path}: reading COMTRADE needs the optional package 'comtrade' (pip install "
+            "'jaxdmd[comtrade]'), or convert the recording to CSV"
+        ) from None
+    rec = comtrade.Comtrade(use_double_precision=True, use_numpy_arrays=True)
+    try:
+        rec.load(str(path))
+    except (comtrade.ComtradeError, OSError, ValueError, IndexError, KeyError, TypeError) as err:
+        what = type(err).__name__
+        raise DataError(f"{path}: cannot be read as COMTRADE ({what}: {err})") from None
+    return rec
+
+
+def _load_comtrade(
+    path: Path,
+    roles: Mapping[str, str] | None,
+    units: Mapping[str, str] | None,
+    events: Sequence[float] | None,
+    label: str | None,
+    diff_kw: Mapping[str, Any],
+) -> Dataset:
+    """A COMTRADE recording: its analog channels (named by their channel ids, which must be
+    valid variable names; the status channels are left out), the time in seconds from the
+    first sample, the channel units of the .cfg; roles, events and label from the sidecar
+    (``rec.cfg.json`` or ``rec.json``) or the arguments, as for a CSV."""
+    meta = _read_sidecar(path) or {}
+    side = meta.get("_path", "the sidecar")
+    if roles is None:
+        if "roles" not in meta:
+            raise DataError(
+                f"{path}: no sidecar ({' or '.join(map(str, _sidecar_paths(path)))}) naming the "
+                "roles; write one or pass roles= to Dataset.load (on the command line: "
+                "--states, --algebraic, --inputs, --boundary or --role NAME=ROLE)"
+            )
+        roles, role_src = meta["roles"], side
+    else:
+        role_src = "the roles given"
+    if not isinstance(roles, Mapping):
+        raise DataError(f"{side}: 'roles' must map channel names to roles")
+    rec = _comtrade_record(path)
+    names = [str(c).strip() for c in rec.analog_channel_ids]
+    seen: set[str] = set()
+    for nm in names:
+        if nm in seen:
+            raise DataError(f"{path}: analog channel {nm!r} appears more than once")
+        seen.add(nm)
+    stored_units = {
+        nm: str(getattr(ch, "uu", "") or "").strip()
+        for nm, ch in zip(names, rec.cfg.analog_channels, strict=True)
+    }
+    units = units if units is not None else meta.get("units", stored_units)
+    for src, group in ((role_src, roles), (side, units)):
+        for nm in group:
+            if nm not in names:
+                raise DataError(
+                    f"{src} names column {nm!r}, which the COMTRADE file {path} lacks (its "
+                    f"analog channels: {', '.join(names)})"
+                )
+    for nm in names:
+        if nm not in roles:
+            raise DataError(
+                f"column {nm!r} of {path} has no role in {role_src}; give one of {ROLES} (on "
+                f"the command line: --states/--algebraic/--inputs/--boundary {nm}, or "
+                f"--role {nm}=ROLE)"
+            )
+    t = np.asarray(rec.time, dtype=np.float64)
+    t = t - t[0] if t.size else t
+    channels = [(nm, np.asarray(rec.analog[i], dtype=np.float64)) for i, nm in enumerate(names)]
+    return Dataset.create(
+        t,
+        channels,
+        roles,
+        units,
+        events=tuple(events if events is not None else meta.get("events", ())),
+        label=str(label if label is not None else meta.get("label", path.stem)),
         **diff_kw,
     )
 

@@ -101,8 +101,8 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
     add = g.add_argument
     add("--out", metavar="DIR", default=None, help=f"output folder (default {DEFAULT_OUT})")
     add("--data", nargs="+", metavar="FILE",
-        help="training recordings (.npz, or .csv with a .json sidecar or the role flags); "
-        "default: the benchmark")
+        help="training recordings (.npz, or .csv or COMTRADE .cfg with a .json sidecar or the "
+        "role flags); default: the benchmark")
     add("--test-data", nargs="+", metavar="FILE", help="held-out recordings")
     add("--given-derivatives", action="store_true",
         help="fit the derivatives stored in --data as they are (exact ones, from a simulator); "
