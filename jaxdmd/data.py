@@ -647,10 +647,19 @@ def parse_times(values: Any, column: str = "t") -> np.ndarray:
     if arr.dtype.kind in "biuf":
         return arr.astype(np.float64)
     cells = [str(v) for v in arr.ravel()]
-    try:
-        return np.array([float(c) for c in cells], dtype=np.float64)
-    except ValueError:
-        pass
+    numbers = []
+    for i, cell in enumerate(cells):
+        try:
+            numbers.append(float(cell))
+        except ValueError:
+            if i == 0:
+                break  # timestamps, or an error named below
+            what = "an empty cell" if not cell.strip() else f"non-numeric value {cell!r}"
+            raise DataError(
+                f"column {column!r} (time) has {what} at row {i} (the rows before are seconds)"
+            ) from None
+    else:
+        return np.array(numbers, dtype=np.float64)
     stamps = np.empty(len(cells), dtype="datetime64[ns]")
     for i, cell in enumerate(cells):
         try:

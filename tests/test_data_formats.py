@@ -71,6 +71,14 @@ def test_bad_timestamp_names_file_row_and_column(tmp_path):
     assert str(path) in msg and "'Time'" in msg and "row 3" in msg and "noon" in msg
 
 
+def test_a_bad_cell_among_seconds_is_named(tmp_path):
+    secs = [repr(float(v)) for v in T]
+    secs[5] = "oops"
+    path = write(tmp_path / "x.csv", ["t", "a", "b"], secs)
+    with pytest.raises(DataError, match=r"'t' \(time\) has non-numeric value 'oops' at row 5"):
+        Dataset.load(path)
+
+
 def test_missing_time_column_lists_the_names(tmp_path):
     path = write(tmp_path / "x.csv", ["clock", "a", "b"], [repr(float(v)) for v in T])
     with pytest.raises(DataError, match=r"no time column .*Time \(s\)"):
