@@ -22,6 +22,7 @@ from pathlib import Path
 import jax
 
 from jaxdmd import pretty, search
+from jaxdmd.cli_data import ROLE_KEYS
 from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory, discover
 from jaxdmd.report import Progress
 from jaxdmd.search import SearchConfig
@@ -199,7 +200,7 @@ RUN_KEYS = (
     "data", "test_data", "given_derivatives", "generator", "operating_points", "noise", "rounds",
     "prompts", "samples", "islands", "tau_c", "tau_l", "seed", "no_recombine", "weighted",
     "skip_ae", "integral", "gamma", "refit_integral", "ae_bias_correction", "ae_states",
-    "ae_joint", "subset_de", "subset_ae", "states", "inputs", "algebraic", "boundary", "role",
+    "ae_joint", "subset_de", "subset_ae", *ROLE_KEYS,
 )  # fmt: skip
 """The options a run records in run.json (and ``--resume`` restores)."""
 
