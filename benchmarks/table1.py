@@ -191,6 +191,8 @@ def summarise_recordings(scores: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     Means over the recordings of the per-recording means over states (full record and fault
     window), per-state means over the recordings, and the divergence count. A diverged
     recording makes the row's errors ``inf`` and its ``r2`` ``-inf``, as ``score`` does.
+    ``far_off`` (per recording) and ``n_far_off`` also count rollouts that stay bounded but
+    have a state with R^2 < -10 (``jaxdmd.rollout.FAR_OFF_R2``); they are not aggregated.
     """
     row: dict[str, Any] = {}
     for k in METRIC_KEYS:
@@ -208,11 +210,14 @@ def summarise_recordings(scores: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "nrmse": s["full"]["mean"]["nrmse"],
             "diverged": bool(s.get("diverged", False)),
             "diverged_at": s.get("diverged_at"),
+            "far_off": bool(s.get("far_off", False)),
+            "far_off_states": list(s.get("far_off_states", [])),
         }
         for s in scores
     ]
     row["n_recordings"] = len(scores)
     row["n_diverged"] = sum(1 for s in scores if s.get("diverged", False))
+    row["n_far_off"] = sum(1 for s in scores if s.get("far_off", False))
     return row
 
 
@@ -785,6 +790,7 @@ def _short(row: Mapping[str, Any]) -> str:
     return (
         f"MAPE {_fmt(row['mape'], '.4g')} %  R^2 {_fmt(row['r2'], '.5g')}  "
         f"NRMSE {_fmt(row['nrmse'], '.3g')}  diverged {row['n_diverged']}/{row['n_recordings']}"
+        f"  far off {row.get('n_far_off', 0)}/{row['n_recordings']}"
     )
 
 

@@ -8,17 +8,21 @@ Three variants (the paper's Table I), all with the Dataset's state-derivative es
 - ``"overcomplete"``: the same variables, degree 2;
 - ``"missing"``: degree 1 without ``i_d`` and ``i_q``.
 
-Sparsity threshold (STLSQ), chosen on the training data only: the training set is split into a
-fit part and a validation part (the last recording if there are two or more, else the last
-``holdout`` fraction of the single recording, as a time block); every threshold of a grid is
-fitted on the fit part and scored by the validation error of the *derivative fit* (the mean over
-states of MSE / variance of the validation derivatives); the largest threshold within 1 % of the
-best error wins (the sparsest among the equally good), and the model is refitted on the whole
-training set with it. The thresholds are dimensionless: each target column is divided by its
-norm and pysindy normalises the library columns (``normalize_columns=True``), so a threshold is
-the smallest kept contribution of a unit-norm term to a unit-norm target; coefficients are
-scaled back afterwards. `sindy_baseline` takes only training data, so the test recording cannot
-leak into the choice.
+Sparsity threshold (STLSQ), chosen on the training data only. With two or more recordings the
+training set is split into a fit part and a validation part (the last recording); every
+threshold of a grid is fitted on the fit part and scored by the validation error of the
+*derivative fit* (the mean over states of MSE / variance of the validation derivatives). With a
+single recording, whose last part has usually settled (its derivatives are noise, so the empty
+model would win by construction), the threshold is chosen by cross-validation over held-out time
+blocks: the recording is cut into ``round(1 / holdout)`` blocks of equal duration, each block is
+predicted by the model fitted on the others, and the error is that of the pooled held-out
+predictions over the whole recording (MSE / variance per state, mean over states). Either way
+the largest threshold within 1 % of the best error wins (the sparsest among the equally good),
+and the model is refitted on the whole training set with it. The thresholds are dimensionless:
+each target column is divided by its norm and pysindy normalises the library columns
+(``normalize_columns=True``), so a threshold is the smallest kept contribution of a unit-norm
+term to a unit-norm target; coefficients are scaled back afterwards. `sindy_baseline` takes
+only training data, so the test recording cannot leak into the choice.
 
 Rollout: the fitted model is converted to a JAX vector field (coefficients times the polynomial
 features, `Block`) and simulated by `jaxdmd.rollout.rollout` in ``mode="de"``: the controls are
@@ -29,6 +33,7 @@ measured one, and the integrator, play-in and metrics are exactly those used for
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -98,15 +103,53 @@ def _fit(
     return model, coef, powers
 
 
-def _split(train: Sequence[Dataset], holdout: float) -> tuple[list[Dataset], list[Dataset]]:
-    """Fit part and validation part of the training set (see the module docstring)."""
-    if len(train) >= 2:
-        return list(train[:-1]), [train[-1]]
-    (ds,) = train
-    t = np.asarray(ds.t)
-    cut = float(t[0] + (1.0 - holdout) * (t[-1] - t[0]))
-    i = int(np.searchsorted(t, cut))
-    return [ds.window(float(t[0]), float(t[i - 1]))], [ds.window(float(t[i]), float(t[-1]))]
+def _split(train: Sequence[Dataset]) -> tuple[list[Dataset], list[Dataset]]:
+    """Fit part and validation part of two or more training recordings: all but the last, and
+    the last."""
+    return list(train[:-1]), [train[-1]]
+
+
+def _block_errors(
+    ds: Dataset,
+    states: Sequence[str],
+    controls: Sequence[str],
+    degree: int,
+    thresholds: Sequence[float],
+    holdout: float,
+    alpha: float,
+) -> list[tuple[float, float]]:
+    """(threshold, held-out error) by cross-validation over time blocks of one recording.
+
+    The recording is cut into ``k = max(2, round(1 / holdout))`` blocks of equal duration; for
+    every threshold and block the model is fitted on the other blocks (the pieces before and
+    after it, as separate trajectories) and predicts the held-out block's derivatives. The error
+    is the mean over states of MSE / variance of the pooled held-out predictions over the whole
+    recording, so the transients count wherever they are.
+    """
+    (x,), (u,), (dx,), (t,) = _arrays([ds], states, controls)
+    n = t.shape[0]
+    k = max(2, round(1.0 / holdout))
+    cuts = t[0] + (t[-1] - t[0]) * np.arange(1, k) / k
+    edges = [0, *np.searchsorted(t, cuts).tolist(), n]
+    blocks = [(a, b) for a, b in itertools.pairwise(edges) if b > a]
+    names = (*states, *controls)
+    z = np.concatenate([x, u], axis=1)
+    var = np.maximum(np.var(dx, axis=0), 1e-300)
+    table = []
+    for th in thresholds:
+        pred = np.empty_like(dx)
+        for a, b in blocks:
+            pieces = [(0, a), (b, n)]
+            pieces = [(i, j) for i, j in pieces if j - i >= 2]
+            xs = [x[i:j] for i, j in pieces]
+            us = [u[i:j] for i, j in pieces]
+            dxs = [dx[i:j] for i, j in pieces]
+            ts = [t[i:j] for i, j in pieces]
+            _, coef, powers = _fit(xs, us, dxs, ts, names, degree, float(th), alpha)
+            pred[a:b] = _features(z[a:b], powers) @ coef.T
+        err = float(np.mean(np.mean((pred - dx) ** 2, axis=0) / var))
+        table.append((float(th), err if np.isfinite(err) else float("inf")))
+    return table
 
 
 def choose_threshold(
@@ -124,10 +167,17 @@ def choose_threshold(
 
     Returns ``(threshold, table)`` with ``table`` the (threshold, validation error) pairs; the
     error is the mean over states of MSE(predicted - estimated derivative) / variance of the
-    estimated derivative on the validation part. Among thresholds within ``tolerance`` (relative)
-    of the lowest error the largest is chosen.
+    estimated derivative on the validation part: the last recording when there are two or more,
+    else the held-out time blocks of the single recording (`_block_errors`, ``holdout`` the
+    share of one block). Among thresholds within ``tolerance`` (relative) of the lowest error
+    the largest is chosen.
     """
-    fit_part, val_part = _split(train, holdout)
+    if len(train) == 1:
+        table = _block_errors(train[0], states, controls, degree, thresholds, holdout, alpha)
+        best = min(e for _, e in table)
+        chosen = max(th for th, e in table if e <= best * (1.0 + tolerance))
+        return chosen, tuple(table)
+    fit_part, val_part = _split(train)
     names = (*states, *controls)
     xs, us, dxs, ts = _arrays(fit_part, states, controls)
     vx, vu, vdx, _ = _arrays(val_part, states, controls)
@@ -247,7 +297,8 @@ def sindy_baseline(
         states: the states to model (default: the first recording's states).
         controls: override the kind's controls (e.g. for other data).
         thresholds: the STLSQ threshold grid (dimensionless; see the module docstring).
-        holdout: validation fraction when there is a single training recording.
+        holdout: with a single training recording, the share of one held-out time block of
+            the cross-validation (``round(1 / holdout)`` blocks).
         alpha: STLSQ's ridge penalty (only selects the support: pysindy refits it unbiased).
 
     Returns:

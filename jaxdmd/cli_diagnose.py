@@ -12,8 +12,13 @@ from jaxdmd.data import Dataset
 from jaxdmd.report import Progress
 
 
-def load_recordings(paths: Sequence[str]) -> list[Dataset]:
-    return [Dataset.load(p) for p in paths]
+def load_recordings(paths: Sequence[str], args: argparse.Namespace | None = None) -> list[Dataset]:
+    """The recordings, with the roles of the role flags (`jaxdmd.cli_data.load_data`)."""
+    from jaxdmd.cli_data import load_data, role_flags
+
+    if args is None or not role_flags(args):
+        return [Dataset.load(p) for p in paths]
+    return load_data(paths, args)
 
 
 def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,6 +59,13 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--seed", type=int, default=0, help="seed of the extension search's PRNG key (0)"
     )
+    from jaxdmd.cli_data import add_role_arguments
+
+    add_role_arguments(
+        parser.add_argument_group(
+            "channel roles (of the --data columns: for a CSV without a sidecar, or to override it)"
+        )
+    )
 
 
 def run_diagnose(args: argparse.Namespace) -> int:
@@ -61,8 +73,8 @@ def run_diagnose(args: argparse.Namespace) -> int:
     from jaxdmd.report import write_report
 
     progress = Progress()
-    train = load_recordings(args.data)
-    test = load_recordings(args.test_data) if args.test_data else None
+    train = load_recordings(args.data, args)
+    test = load_recordings(args.test_data, args) if args.test_data else None
     first = train[0]
     model = load_model(args.model, states=first.state_names, channels=first.names)
     window = args.window if args.window > 0 else None

@@ -20,6 +20,7 @@ import csv
 import itertools
 import json
 import math
+import re
 import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -32,6 +33,7 @@ from numpy.typing import ArrayLike
 from jaxdmd.whitelist import invalid_variable_name
 
 __all__ = [
+    "COMTRADE_SUFFIXES",
     "DERIVATIVE_PREFIX",
     "METHODS",
     "MIN_SAMPLES",
@@ -40,14 +42,18 @@ __all__ = [
     "DataFileNotFound",
     "Dataset",
     "check_compatible",
+    "data_columns",
     "differentiate",
     "differentiation_error",
     "estimator_band",
+    "find_time_column",
     "load_many",
     "matched_filter",
+    "parse_times",
     "samples",
     "segments",
     "stack_samples",
+    "stored_roles",
     "synthetic_signal",
 ]
 
@@ -67,7 +73,14 @@ coefficients) and needs a fifth sample to smooth at all (its spline needs five t
 the derivative estimates and the fitted scores are meaningless (two samples give a constant
 derivative, whose variance of zero makes every normalised error NaN)."""
 
-_TIME_NAMES = ("t", "time", "time_s", "t_s")
+_TIME_NAMES = ("t", "time", "time_s", "t_s", "timestamp", "seconds")
+"""Names of a time column, compared case-insensitively after dropping units in parentheses or
+brackets (``Time (s)``, ``TIME [s]``) and turning spaces into ``_`` (`time_key`)."""
+_UNITS = re.compile(r"\s*[\(\[][^\)\]]*[\)\]]\s*")
+_ISO = re.compile(
+    r"^(\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2}(?:[.,]\d+)?)?)?)\s*"
+    r"(Z|[+-]\d{2}(?::?\d{2})?)?$"
+)
 _FORMAT = "jaxdmd.dataset"
 _VERSION = 1
 
@@ -589,6 +602,78 @@ def _check_time(t: ArrayLike, name: str = "t", minimum: int = 2) -> np.ndarray:
     return arr
 
 
+def time_key(header: str) -> str:
+    """A column name as compared with the time names: units in parentheses or brackets dropped,
+    lower case, spaces as ``_`` (``"Time (s)"`` -> ``"time"``, ``"Time s"`` -> ``"time_s"``)."""
+    return "_".join(_UNITS.sub(" ", str(header)).lower().split())
+
+
+def find_time_column(columns: Iterable[Any]) -> Any | None:
+    """The first of ``columns`` named like a time column (`time_key` in ``t``, ``time``,
+    ``time_s``, ``t_s``, ``timestamp``, ``seconds``), or None."""
+    return next((c for c in columns if time_key(c) in _TIME_NAMES), None)
+
+
+def _timestamp(cell: str) -> np.datetime64:
+    """An ISO-8601 date or date-time as UTC nanoseconds; ValueError if it is not one."""
+    m = _ISO.match(cell.strip())
+    if m is None:
+        raise ValueError(cell)
+    stamp = np.datetime64(m.group(1).replace(" ", "T").replace(",", "."), "ns")
+    zone = m.group(2)
+    if zone and zone != "Z":
+        digits = zone[1:].replace(":", "")
+        minutes = int(digits[:2]) * 60 + (int(digits[2:]) if len(digits) > 2 else 0)
+        offset = np.timedelta64(minutes, "m")
+        stamp = stamp - offset if zone[0] == "+" else stamp + offset
+    return stamp
+
+
+def parse_times(values: Any, column: str = "t") -> np.ndarray:
+    """Sample times in seconds from a time column: numbers (seconds) as they are; ``datetime64``
+    values or ISO-8601 timestamps (``2024-05-01T12:00:00.25``, ``2024-05-01 12:00:00Z``,
+    ``...+02:00``) as seconds from the first sample (offsets converted to UTC).
+
+    Raises:
+        DataError: naming the column and the first row that is neither a number nor a timestamp.
+    """
+    arr = np.asarray(values)
+    if arr.dtype.kind == "M":
+        ns = arr.astype("datetime64[ns]")
+        if np.isnat(ns).any():
+            i = int(np.argmax(np.isnat(ns)))
+            raise DataError(f"column {column!r} (time) has a missing timestamp (NaT) at row {i}")
+        return (ns - ns[0]).astype(np.int64) / 1e9
+    if arr.dtype.kind in "biuf":
+        return arr.astype(np.float64)
+    cells = [str(v) for v in arr.ravel()]
+    numbers = []
+    for i, cell in enumerate(cells):
+        try:
+            numbers.append(float(cell))
+        except ValueError:
+            if i == 0:
+                break  # timestamps, or an error named below
+            what = "an empty cell" if not cell.strip() else f"non-numeric value {cell!r}"
+            raise DataError(
+                f"column {column!r} (time) has {what} at row {i} (the rows before are seconds)"
+            ) from None
+    else:
+        return np.array(numbers, dtype=np.float64)
+    stamps = np.empty(len(cells), dtype="datetime64[ns]")
+    for i, cell in enumerate(cells):
+        try:
+            stamps[i] = _timestamp(cell)
+        except ValueError:
+            what = "an empty cell" if not cell.strip() else f"{cell!r}"
+            raise DataError(
+                f"column {column!r} (time) has {what} at row {i}: neither a number of seconds "
+                "nor an ISO-8601 timestamp (e.g. 2024-05-01T12:00:00.25, optionally with Z or "
+                "+02:00)"
+            ) from None
+    return (stamps - stamps[0]).astype(np.int64) / 1e9
+
+
 def _check_finite(name: str, arr: np.ndarray, kind: str = "column") -> None:
     """Raise a DataError naming ``name`` and the first row holding a NaN or an infinity."""
     bad = ~np.isfinite(arr)
@@ -1098,7 +1183,8 @@ class Dataset(eqx.Module):
         label: str | None = None,
         **diff_kw: Any,
     ) -> Dataset:
-        """Load a ``.npz`` written by `save`, or a ``.csv`` with its JSON sidecar.
+        """Load a ``.npz`` written by `save`, a ``.csv`` with its JSON sidecar, or a COMTRADE
+        recording (``.cfg`` with its ``.dat``, or ``.cff``; `_load_comtrade`).
 
         The sidecar is ``<path>.json`` or ``<path without suffix>.json``; it holds ``roles`` and
         optionally ``units``, ``events``, ``label`` and ``time`` (the time column; default: a
@@ -1116,13 +1202,138 @@ class Dataset(eqx.Module):
                 return _load_npz(path, roles, units, events, label)
             if path.suffix == ".csv":
                 return _load_csv(path, roles, units, events, label, diff_kw)
+            if path.suffix.lower() in COMTRADE_SUFFIXES:
+                return _load_comtrade(path, roles, units, events, label, diff_kw)
         except DataError as err:
             raise _in_file(err, path) from None
         except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as err:
             # unreadable or malformed files (a damaged .npz, bad metadata): a DataError too
             what = type(err).__name__
             raise DataError(f"{path}: cannot be read as a jaxdmd dataset ({what}: {err})") from None
-        raise DataError(f"load: unknown file type {path.suffix!r} of {path}; use .npz or .csv")
+        raise DataError(
+            f"load: unknown file type {path.suffix!r} of {path}; use .npz, .csv or COMTRADE "
+            "(.cfg with its .dat, or .cff)"
+        )
+
+    @classmethod
+    def from_frame(
+        cls,
+        df: Any,
+        roles: Mapping[str, str],
+        time: Any = None,
+        units: Mapping[str, str] | None = None,
+        events: Sequence[float] = (),
+        label: str = "",
+        **diff_kw: Any,
+    ) -> Dataset:
+        """A Dataset from a table with named columns: a pandas ``DataFrame`` or anything with
+        ``.columns`` and ``df[column]`` returning an array-like (pandas is optional and not
+        imported here).
+
+        Args:
+            df: the table; columns ``d/dt <state>`` are state derivatives (else estimated).
+            roles: column name -> role for every other column except the time column.
+            time: the time column; None: a column named like a time column (``t``, ``time``,
+                ``Time (s)``, ``timestamp``, ...), else the frame's index (a ``DatetimeIndex``
+                or numeric times; not a plain row-number ``RangeIndex``). Numbers are seconds;
+                ``datetime64`` values and ISO-8601 strings become seconds from the first sample.
+            units, events, label, **diff_kw: as `create`.
+
+        Raises:
+            DataError: naming the column and the problem.
+        """
+        keys = list(df.columns)
+        names = [str(k) for k in keys]
+        key_of = dict(zip(names, keys, strict=True))
+        if time is None:
+            time_name = find_time_column(names)
+            if time_name is not None:
+                t = parse_times(_array(df[key_of[time_name]]), time_name)
+            else:
+                index = getattr(df, "index", None)
+                if index is None or type(index).__name__ == "RangeIndex":
+                    raise DataError(
+                        f"the frame has no time column (expected one named {_TIME_NAMES}, in "
+                        f"any case, units in parentheses ignored) and "
+                        f"{'no index' if index is None else 'only a row-number index'}; pass "
+                        f"time=COLUMN (its columns: {', '.join(names)})"
+                    )
+                t = parse_times(_array(index), str(getattr(index, "name", None) or "index"))
+        else:
+            time_name = str(time)
+            if time_name not in key_of:
+                raise DataError(
+                    f"time={time_name!r} names a column the frame lacks (its columns: "
+                    f"{', '.join(names)})"
+                )
+            t = parse_times(_array(df[key_of[time_name]]), time_name)
+        if not isinstance(roles, Mapping):
+            raise DataError(f"roles must be a mapping name -> role, got {type(roles).__name__}")
+        for src, group in (("roles", roles), ("units", units or {})):
+            for nm in group:
+                if nm not in key_of:
+                    raise DataError(
+                        f"{src} name column {nm!r}, which the frame lacks (its columns: "
+                        f"{', '.join(names)})"
+                    )
+        channels, ders = [], {}
+        for nm in names:
+            if nm == time_name:
+                continue
+            if nm.startswith(DERIVATIVE_PREFIX):
+                state = nm[len(DERIVATIVE_PREFIX) :]
+                if state not in key_of:
+                    raise DataError(
+                        f"column {nm!r} is the derivative of {state!r}, which is absent"
+                    )
+                ders[state] = _array(df[key_of[nm]])
+            elif nm not in roles:
+                raise DataError(f"column {nm!r} of the frame has no role; give one of {ROLES}")
+            else:
+                channels.append((nm, _array(df[key_of[nm]])))
+        return cls.create(
+            t, channels, roles, units, derivatives=ders or None, events=events, label=label,
+            **diff_kw,
+        )  # fmt: skip
+
+
+def _array(x: Any) -> np.ndarray:
+    """A column of a frame as a numpy array (a pandas Series through ``to_numpy``)."""
+    to_numpy = getattr(x, "to_numpy", None)
+    return np.asarray(to_numpy() if callable(to_numpy) else x)
+
+
+def stored_roles(path: str | Path) -> dict[str, str]:
+    """The roles a data file carries: a CSV's (or COMTRADE file's) sidecar ``roles`` or an
+    ``.npz``'s; ``{}`` when there are none (no sidecar)."""
+    path = Path(path)
+    if path.suffix == ".npz" and path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" in z.files:
+                return dict(json.loads(str(z["meta"])).get("roles", {}))
+        return {}
+    meta = _read_sidecar(path) if path.suffix.lower() in (".csv", *COMTRADE_SUFFIXES) else None
+    roles = (meta or {}).get("roles", {})
+    return dict(roles) if isinstance(roles, Mapping) else {}
+
+
+def data_columns(path: str | Path) -> list[str]:
+    """The channel columns of a data file, which need a role: a CSV's header without its time
+    column and the ``d/dt`` columns, an ``.npz``'s channel names, or a COMTRADE file's analog
+    channels."""
+    path = Path(path)
+    if not path.exists():
+        raise DataFileNotFound(f"{path}: not found (no such data file)")
+    if path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            return list(json.loads(str(z["meta"]))["names"]) if "meta" in z.files else []
+    if path.suffix.lower() in COMTRADE_SUFFIXES:
+        return [str(c).strip() for c in _comtrade_record(path).analog_channel_ids]
+    with path.open(newline="") as f:
+        header = next((r for r in csv.reader(f) if r and not r[0].lstrip().startswith("#")), [])
+    header = [h.strip() for h in header]
+    time_col = (_read_sidecar(path) or {}).get("time") or find_time_column(header)
+    return [h for h in header if h != time_col and not h.startswith(DERIVATIVE_PREFIX)]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1193,9 +1404,13 @@ def _load_csv(
         if "roles" not in meta:
             raise DataError(
                 f"{path}: no sidecar ({' or '.join(map(str, _sidecar_paths(path)))}) naming the "
-                "roles; write one or pass roles= to Dataset.load"
+                "roles; write one or pass roles= to Dataset.load (on the command line: "
+                "--states, --algebraic, --inputs, --boundary or --role NAME=ROLE)"
             )
         roles = meta["roles"]
+        role_src = side
+    else:
+        role_src = "the roles given"
     if not isinstance(roles, Mapping):
         raise DataError(f"{side}: 'roles' must map column names to roles")
     units = units if units is not None else meta.get("units", {})
@@ -1216,20 +1431,25 @@ def _load_csv(
         seen.add(h)
     time_col = meta.get("time")
     if time_col is None:
-        time_col = next((h for h in header if h.lower() in _TIME_NAMES), None)
+        time_col = find_time_column(header)
         if time_col is None:
             raise DataError(
-                f"{path}: the CSV has no time column (expected one named {_TIME_NAMES}, or a "
-                f"'time' entry in the sidecar); columns are {header}"
+                f"{path}: the CSV has no time column (expected one named {_TIME_NAMES}, in any "
+                f"case, units in parentheses ignored, e.g. 'Time (s)'; or a 'time' entry in the "
+                f"sidecar); columns are {header}"
             )
     elif time_col not in header:
         raise DataError(f"{side} names time column {time_col!r}, which the CSV {path} lacks")
-    for group in (roles, units):
+    for src, group in ((role_src, roles), (side, units)):
         for nm in group:
             if nm not in header:
-                raise DataError(f"{side} names column {nm!r}, which the CSV {path} lacks")
+                raise DataError(
+                    f"{src} names column {nm!r}, which the CSV {path} lacks (its columns: "
+                    f"{', '.join(header)})"
+                )
 
     body = rows[1:]
+    tj = header.index(time_col)
     table = np.empty((len(body), len(header)))
     for i, row in enumerate(body):
         if len(row) != len(header):
@@ -1240,6 +1460,8 @@ def _load_csv(
                 f"(unequal lengths: {what})"
             )
         for j, cell in enumerate(row):
+            if j == tj:
+                continue  # seconds or timestamps: parse_times below
             try:
                 table[i, j] = float(cell)
             except ValueError:
@@ -1247,7 +1469,7 @@ def _load_csv(
                 raise DataError(f"column {header[j]!r} has {what} at row {i}") from None
 
     col = {h: table[:, j] for j, h in enumerate(header)}
-    t = col[time_col]
+    t = parse_times([row[tj] for row in body], time_col)
     channels, ders = [], {}
     for h in header:
         if h == time_col:
@@ -1260,7 +1482,9 @@ def _load_csv(
         else:
             if h not in roles:
                 raise DataError(
-                    f"column {h!r} of {path} has no role in {side}; give one of {ROLES}"
+                    f"column {h!r} of {path} has no role in {role_src}; give one of {ROLES} (on "
+                    f"the command line: --states/--algebraic/--inputs/--boundary {h}, or "
+                    f"--role {h}=ROLE)"
                 )
             channels.append((h, col[h]))
     return Dataset.create(
@@ -1271,6 +1495,95 @@ def _load_csv(
         derivatives=ders or None,
         events=tuple(events),
         label=str(label),
+        **diff_kw,
+    )
+
+
+COMTRADE_SUFFIXES: tuple[str, ...] = (".cfg", ".cff")
+"""File suffixes read as COMTRADE (IEEE C37.111) through the optional package ``comtrade``."""
+
+
+def _comtrade_record(path: Path) -> Any:
+    """The recording read by the ``comtrade`` package (optional: ``pip install
+    'jaxdmd[comtrade]'``), in float64."""
+    try:
+        import comtrade
+    except ImportError:
+        raise DataError(
+            f"{path}: reading COMTRADE needs the optional package 'comtrade' (pip install "
+            "'jaxdmd[comtrade]'), or convert the recording to CSV"
+        ) from None
+    rec = comtrade.Comtrade(use_double_precision=True, use_numpy_arrays=True)
+    try:
+        rec.load(str(path))
+    except (comtrade.ComtradeError, OSError, ValueError, IndexError, KeyError, TypeError) as err:
+        what = type(err).__name__
+        raise DataError(f"{path}: cannot be read as COMTRADE ({what}: {err})") from None
+    return rec
+
+
+def _load_comtrade(
+    path: Path,
+    roles: Mapping[str, str] | None,
+    units: Mapping[str, str] | None,
+    events: Sequence[float] | None,
+    label: str | None,
+    diff_kw: Mapping[str, Any],
+) -> Dataset:
+    """A COMTRADE recording: its analog channels (named by their channel ids, which must be
+    valid variable names; the status channels are left out), the time in seconds from the
+    first sample, the channel units of the .cfg; roles, events and label from the sidecar
+    (``rec.cfg.json`` or ``rec.json``) or the arguments, as for a CSV."""
+    meta = _read_sidecar(path) or {}
+    side = meta.get("_path", "the sidecar")
+    if roles is None:
+        if "roles" not in meta:
+            raise DataError(
+                f"{path}: no sidecar ({' or '.join(map(str, _sidecar_paths(path)))}) naming the "
+                "roles; write one or pass roles= to Dataset.load (on the command line: "
+                "--states, --algebraic, --inputs, --boundary or --role NAME=ROLE)"
+            )
+        roles, role_src = meta["roles"], side
+    else:
+        role_src = "the roles given"
+    if not isinstance(roles, Mapping):
+        raise DataError(f"{side}: 'roles' must map channel names to roles")
+    rec = _comtrade_record(path)
+    names = [str(c).strip() for c in rec.analog_channel_ids]
+    seen: set[str] = set()
+    for nm in names:
+        if nm in seen:
+            raise DataError(f"{path}: analog channel {nm!r} appears more than once")
+        seen.add(nm)
+    stored_units = {
+        nm: str(getattr(ch, "uu", "") or "").strip()
+        for nm, ch in zip(names, rec.cfg.analog_channels, strict=True)
+    }
+    units = units if units is not None else meta.get("units", stored_units)
+    for src, group in ((role_src, roles), (side, units)):
+        for nm in group:
+            if nm not in names:
+                raise DataError(
+                    f"{src} names column {nm!r}, which the COMTRADE file {path} lacks (its "
+                    f"analog channels: {', '.join(names)})"
+                )
+    for nm in names:
+        if nm not in roles:
+            raise DataError(
+                f"column {nm!r} of {path} has no role in {role_src}; give one of {ROLES} (on "
+                f"the command line: --states/--algebraic/--inputs/--boundary {nm}, or "
+                f"--role {nm}=ROLE)"
+            )
+    t = np.asarray(rec.time, dtype=np.float64)
+    t = t - t[0] if t.size else t
+    channels = [(nm, np.asarray(rec.analog[i], dtype=np.float64)) for i, nm in enumerate(names)]
+    return Dataset.create(
+        t,
+        channels,
+        roles,
+        units,
+        events=tuple(events if events is not None else meta.get("events", ())),
+        label=str(label if label is not None else meta.get("label", path.stem)),
         **diff_kw,
     )
 

@@ -316,7 +316,8 @@ class Discovery:
         self, recordings: Sequence[Dataset], mode: Literal["dae", "de"] = "dae"
     ) -> dict[str, Any]:
         """Rollout metrics on each recording (:func:`jaxdmd.rollout.score`) and their mean over
-        the recordings: ``{"recordings": [...], "mean": {metric: value}, "n_diverged": k}``."""
+        the recordings: ``{"recordings": [...], "mean": {metric: value}, "n_diverged": k,
+        "n_far_off": j}`` (far off: diverged or a state's R^2 below -10)."""
         from jaxdmd.rollout import score
 
         states = tuple(self.de.contract.targets)
@@ -327,6 +328,7 @@ class Discovery:
             "recordings": scores,
             "mean": mean,
             "n_diverged": sum(1 for s in scores if s.get("diverged")),
+            "n_far_off": sum(1 for s in scores if s.get("far_off")),
         }
 
     def held_out(self, recordings: Sequence[Dataset]) -> dict[str, Any]:

@@ -193,7 +193,9 @@ class Progress:
 
 def rollout_summary(scores: Sequence[dict]) -> dict:
     """The mean over recordings of :func:`jaxdmd.rollout.score` results: per state and over
-    states (MAPE, R^2, NRMSE), and how many rollouts diverged."""
+    states (MAPE, R^2, NRMSE), how many rollouts diverged, and how many are far off (diverged,
+    or a state's R^2 below ``FAR_OFF_R2`` = -10: ``n_far_off``, and per state the number of
+    recordings where it is far off, ``far_off_states``)."""
     from jaxdmd.rollout import METRICS
 
     if not scores:
@@ -211,6 +213,12 @@ def rollout_summary(scores: Sequence[dict]) -> dict:
         },
         "n_recordings": len(scores),
         "n_diverged": sum(1 for s in scores if s.get("diverged")),
+        "n_far_off": sum(1 for s in scores if s.get("far_off")),
+        "far_off_states": {
+            st: n
+            for st in states
+            if (n := sum(1 for s in scores if st in s.get("far_off_states", ())))
+        },
     }
 
 
@@ -225,6 +233,12 @@ def rollout_table(test: dict) -> str:
             lines.append(f"| {label} | {st} | {m['mape']:.4g} | {m['r2']:.5g} | {m['nrmse']:.3g} |")
         if row["n_diverged"]:
             lines.append(f"| {label} | diverged | {row['n_diverged']}/{row['n_recordings']} | | |")
+        if row.get("n_far_off"):
+            far = ", ".join(f"{st} ({n})" for st, n in row.get("far_off_states", {}).items())
+            lines.append(
+                f"| {label} | far off (diverged or R^2 < -10) | "
+                f"{row['n_far_off']}/{row['n_recordings']} | {far} | |"
+            )
     return "\n".join(lines) + "\n"
 
 

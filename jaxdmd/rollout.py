@@ -32,7 +32,9 @@ time it happened (`RolloutResult`), the samples after that time being NaN.
 Metrics (`metrics`, `score`; definitions in ``docs/metrics.md``): MAPE with a per-signal floor
 (range of the measured signal), plain MAPE where the signal stays away from zero, R^2, NRMSE and
 NMAE (RMSE and mean absolute error over the range), over the whole record and over the fault
-window (first event to last event + 1 s).
+window (first event to last event + 1 s). `score` also flags a rollout ``far_off`` when it
+diverged or when a state's R^2 over the whole record is below ``FAR_OFF_R2`` (-10): a rollout
+that stays bounded but is far off, which ``diverged`` does not catch.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ import numpy as np
 from jaxdmd.data import Dataset
 
 __all__ = [
+    "FAR_OFF_R2",
     "METRICS",
     "Block",
     "RolloutConfig",
@@ -68,6 +71,10 @@ __all__ = [
 Mode = Literal["dae", "de"]
 METRICS: tuple[str, ...] = ("mape", "mape_plain", "r2", "nrmse", "nmae")
 """Keys of the per-state and mean metrics returned by `metrics`."""
+
+FAR_OFF_R2 = -10.0
+"""R^2 (over the whole record) below which `score` flags a state's rollout ``far_off``: its
+squared error is more than eleven times the signal's variance about its mean."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -632,7 +639,11 @@ def score(
     states: Sequence[str] | None = None,
     after: float = 1.0,
 ) -> dict[str, Any]:
-    """`metrics` over the whole record (``"full"``) and the fault window (``"fault"``)."""
+    """`metrics` over the whole record (``"full"``) and the fault window (``"fault"``).
+
+    For a `RolloutResult` also ``diverged`` and ``diverged_at``. Always ``far_off_states``: the
+    states whose R^2 over the whole record is below `FAR_OFF_R2`, and ``far_off``: the rollout
+    diverged or a state is far off (bounded, but far from the measurement)."""
     out: dict[str, Any] = {"full": metrics(sim, meas, states)}
     window = fault_window(meas, after)
     if window is not None:
@@ -640,6 +651,9 @@ def score(
     if isinstance(sim, RolloutResult):
         out["diverged"] = sim.diverged
         out["diverged_at"] = sim.diverged_at
+    per_state = out["full"]["per_state"]
+    out["far_off_states"] = [st for st, m in per_state.items() if m["r2"] < FAR_OFF_R2]
+    out["far_off"] = bool(out["far_off_states"]) or bool(out.get("diverged", False))
     return out
 
 

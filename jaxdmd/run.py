@@ -24,7 +24,7 @@ from pathlib import Path
 import jax
 
 from jaxdmd import pretty, search
-from jaxdmd.data import load_many
+from jaxdmd.cli_data import ROLE_KEYS
 from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory, discover
 from jaxdmd.report import Progress
 from jaxdmd.search import SearchConfig
@@ -117,7 +117,8 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
     add = g.add_argument
     add("--out", metavar="DIR", default=None, help=f"output folder (default {DEFAULT_OUT})")
     add("--data", nargs="+", metavar="FILE",
-        help="training recordings (.npz, or .csv with a .json sidecar); default: the benchmark")
+        help="training recordings (.npz, or .csv or COMTRADE .cfg with a .json sidecar or the "
+        "role flags); default: the benchmark")
     add("--test-data", nargs="+", metavar="FILE", help="held-out recordings")
     add("--given-derivatives", action="store_true",
         help="fit the derivatives stored in --data as they are (exact ones, from a simulator); "
@@ -131,6 +132,11 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         help="seed of the search's PRNG key (and of the benchmark's operating points and noise)")
     add("--skip-ae", action="store_true", help="run the DE loop only")
     add("--resume", metavar="DIR", help="continue the run saved in DIR")
+    from jaxdmd.cli_data import add_role_arguments
+
+    add_role_arguments(parser.add_argument_group(
+        "channel roles (of the --data columns: for a CSV without a sidecar, or to override it)"
+    ))
     from jaxdmd.proposers.llm import add_llm_arguments
 
     add_llm_arguments(parser)
@@ -209,7 +215,7 @@ RUN_KEYS = (
     "data", "test_data", "given_derivatives", "generator", "operating_points", "noise", "rounds",
     "prompts", "samples", "islands", "tau_c", "tau_l", "seed", "no_recombine", "weighted",
     "skip_ae", "integral", "gamma", "refit_integral", "ae_bias_correction", "ae_states",
-    "ae_joint", "subset_de", "subset_ae",
+    "ae_joint", "subset_de", "subset_ae", *ROLE_KEYS,
 )  # fmt: skip
 """The options a run records in run.json (and ``--resume`` restores)."""
 
@@ -221,8 +227,10 @@ RUN_KEYS = (
 def recordings(args: argparse.Namespace, progress: Progress) -> tuple[list, list, dict]:
     """Training and test recordings (files, or the benchmark's simulation) and their source."""
     if args.data:
-        train = load_many(args.data)
-        test = load_many(args.test_data) if args.test_data else []
+        from jaxdmd.cli_data import load_data
+
+        train = load_data(args.data, args)
+        test = load_data(args.test_data, args) if args.test_data else []
         return train, test, {"data": args.data, "test_data": args.test_data or []}
     from jaxdmd.grid import benchmark_protocol
 
