@@ -1,6 +1,6 @@
 """Export of a discovered model (jaxdmd.export): PSS/E records, ANDES cases, the Python module.
 
-The ANDES round trip (skipped without ANDES: ``pip install -e .[export]``) writes a classical
+The ANDES round trip (ANDES is in the test extra; skipped where it is missing) writes a classical
 machine with known parameters on a single-machine-infinite-bus system, simulates a fault in
 ANDES, plays ANDES's terminal voltage into jaxdmd's rollout of the same model and compares the
 rotor angle and speed.
