@@ -407,6 +407,10 @@ _DE_FORMS: dict[str, tuple[frozenset[str], frozenset[str]]] = {
     "e_dpp": (frozenset({"e_dpp", "e_dp", "i_q"}), frozenset()),
     "e_qpp": (frozenset({"e_qpp", "e_qp", "i_d"}), frozenset()),
 }
+# d e'_q/dt with the stator equation v_q = e'_q - x'_d i_d substituted for i_d (r_a i_q
+# neglected): (-(x_d / x'_d) e'_q + ((x_d - x'_d) / x'_d) v_q + v_f) / T'_d0. With both v_q and
+# i_d measured the data cannot tell the two forms apart; this one identifies T'_d0 and x_d / x'_d.
+_E_QP_TERMINAL = (frozenset({"e_qp", "v_q", "v_f"}), frozenset({"1"}))
 
 
 def _check(name: str, coefs: Mapping[str, Any], required, optional, note="") -> EquationMatch:
@@ -491,6 +495,12 @@ def physical_parameters(
             ok[t] = False
             continue
         m = _check(src, eq[t], *_DE_FORMS[t])
+        if t == "e_qp" and not m.matched:
+            terminal = _check(
+                src, eq[t], *_E_QP_TERMINAL,
+                note="the terminal-voltage form: v_q = e'_q - x'_d i_d substituted for i_d",
+            )  # fmt: skip
+            m = terminal if terminal.matched else m
         matches.append(m)
         ok[t] = m.matched
 
@@ -572,7 +582,25 @@ def physical_parameters(
                 )
         return c
 
-    lag("e_qp", "T'_d0", [("i_d", "x_d - x'_d", -1.0, False), ("v_f", None, 1.0, True)])
+    if ok.get("e_qp") and "v_q" in eq["e_qp"]:  # the terminal-voltage form
+        c = eq["e_qp"]
+        add("T'_d0", lambda t, c=c: 1.0 / c["v_f"](t), "s", "de_qp/dt", "1/c(v_f)")
+        add(
+            "x_d / x'_d",
+            lambda t, c=c: 1.0 + c["v_q"](t) / c["v_f"](t),
+            "",
+            "de_qp/dt",
+            "1 + c(v_q)/c(v_f) (v_q for i_d through the stator equation)",
+        )
+        add(
+            "x_d / x'_d (from e_qp)",
+            lambda t, c=c: -c["e_qp"](t) / c["v_f"](t),
+            "",
+            "de_qp/dt",
+            "second estimate: -c(e_qp)/c(v_f)",
+        )
+    else:
+        lag("e_qp", "T'_d0", [("i_d", "x_d - x'_d", -1.0, False), ("v_f", None, 1.0, True)])
     gq = "x_q - x'_q - gamma_q" if psat else "x_q - x'_q"
     lag("e_dp", "T'_q0", [("i_q", gq, 1.0, False)])
     lag(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -450,3 +452,22 @@ def test_classical_stator_with_e_prime_not_one():
     assert rep.family == "classical"
     _close(rep, "x'_d", xdp)
     _close(rep, "r_a", 0.0)
+
+
+def test_terminal_voltage_form_of_the_field_winding():
+    """d e'_q/dt written with v_q for i_d (the stator equation v_q = e'_q - x'_d i_d
+    substituted, as the default run's searches write it) still gives T'_d0 and x_d / x'_d."""
+    de_c, _ = _contracts()
+    de_c = dataclasses.replace(de_c, library=(*de_c.library, _var("v_q", "algebraic")))
+    src, params = _de_source()
+    src = src.replace("p[5] * i_d", "p[5] * v_q")
+    src = src.replace("i_d, i_q, P_e, p", "i_d, i_q, P_e, v_q, p")
+    ratio = XD / XDP
+    params[3], params[4], params[5] = -ratio / TD0, 1 / TD0, (ratio - 1) / TD0
+    rep = physical_parameters(_equations(de_c, src, params))
+    (m,) = [e for e in rep.equations if e.equation == "de_qp/dt"]
+    assert m.matched and "terminal-voltage" in m.note
+    _close(rep, "T'_d0", TD0)
+    _close(rep, "x_d / x'_d", ratio)
+    _close(rep, "x_d / x'_d (from e_qp)", ratio)
+    assert rep.family == "psat-5.1"
