@@ -215,13 +215,9 @@ def _folds(state: SearchState) -> np.ndarray:
     return groups
 
 
-def _fold_params(
-    state: SearchState, j: int, skeletons: Sequence[Skeleton], folds: bool = True
-) -> np.ndarray:
-    """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``
-    (with ``folds`` False: fitted on all recordings, ``[lines, 1, P_max]``)."""
-    groups = _folds(state) if folds else np.zeros(state.problem.targets.shape[1], dtype=int)
-    fits = fold_fits(state, j, skeletons, groups)
+def _fold_params(state: SearchState, j: int, skeletons: Sequence[Skeleton]) -> np.ndarray:
+    """Parameters of each line fitted with each recording left out: ``[lines, folds, P_max]``."""
+    fits = fold_fits(state, j, skeletons, _folds(state))
     width = max(1, max(sk.n_params for sk in skeletons))
     out = np.full((len(skeletons), len(fits), width), np.nan)
     for f, (_, results) in enumerate(fits):
