@@ -52,6 +52,7 @@ from jaxdmd.select import (
     SelectionConfig,
     inclusion_frequency,
     pool,
+    select_algebraic,
     select_by_simulation,
     simulation_nrmse,
 )
@@ -651,6 +652,19 @@ def discover(
             floor=1e-5 if fine else 1e-4,
         )  # fmt: skip
         ae_seconds += states_seconds
+        ae_selection = None
+        if config.selection is not None:
+            start = time.perf_counter()
+            ae, ae_selection = select_algebraic(
+                ae_state, ae, de, train, config.selection, played_from=regressors
+            )
+            ae_selection["seconds"] = time.perf_counter() - start
+            ae_seconds += ae_selection["seconds"]
+            if ae_selection.get("changed"):
+                observer.message(
+                    "AE equations chosen by simulation: "
+                    + ", ".join(ae_selection["changed"])  # type: ignore[arg-type]
+                )
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:
             start = time.perf_counter()
@@ -670,6 +684,8 @@ def discover(
             joint_report["seconds"] = time.perf_counter() - start
             ae_seconds += joint_report["seconds"]
         summary = _loop_summary(ae_state, ae, ae_seconds)
+        if ae_selection is not None:
+            summary["selection"] = ae_selection
         if bias_report is not None:  # "params"/"equations" are then the refitted ones
             summary["bias_compensated"] = bias_report
         if estimates is not None:

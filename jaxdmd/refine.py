@@ -130,6 +130,9 @@ def refit_bias_compensated(
     for target, line, mapping in zip(contract.targets, lines, mappings, strict=True):
         skeleton = search._line_skeleton(contract, line)
         names = tuple(skeleton.arguments)
+        if not names:
+            report[target] = "kept: a constant has no regressors"
+            continue
         n_p = max(1, line.n_params)
 
         def value(args: jax.Array, p: jax.Array, skeleton=skeleton) -> jax.Array:

@@ -23,6 +23,11 @@ simulation instead:
    variables played in) on every recording, and the one that simulates best is kept, the
    simpler one on a tie.
 
+3. **The algebraic equations** (:func:`select_algebraic`), after the AE loop: each algebraic
+   variable the state equations use is chosen among its candidate lines by simulating the
+   held-out recording with that variable computed and the states it drives integrated, then
+   the choices join the closed model one at a time where they make it simulate better.
+
 Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
 programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
 candidate rollouts cost seconds. Play-in is linear between samples and never across an event (a
@@ -37,7 +42,7 @@ from __future__ import annotations
 import ast
 import copy
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import jax
@@ -56,7 +61,7 @@ from jaxdmd.search import (
 )
 from jaxdmd.skeleton import Skeleton, SkeletonError
 
-__all__ = ["SelectionConfig", "select_by_simulation", "simulate_host"]
+__all__ = ["SelectionConfig", "select_algebraic", "select_by_simulation", "simulate_host"]
 
 
 @dataclass(frozen=True)
@@ -296,6 +301,21 @@ def _term_pool(
     return [first[key] for key in ranked[:k]]
 
 
+def _shared_terms(
+    archived: Sequence[tuple[tuple[float, ...], tuple[ln.Line, ...]]], k: int
+) -> list[ln.Line]:
+    """The ``k`` one-parameter terms found in most archived lines of any equation."""
+    count: dict[str, int] = {}
+    first: dict[str, ln.Line] = {}
+    for _, lines in archived:
+        for line in lines:
+            for term in ln.simple_summands(line):
+                count[term.text] = count.get(term.text, 0) + 1
+                first.setdefault(term.text, term)
+    ranked = sorted(first, key=lambda key: (-count[key], key))
+    return [first[key] for key in ranked[:k]]
+
+
 def _key(line: ln.Line) -> frozenset[str]:
     return frozenset(_terms(line))
 
@@ -308,11 +328,10 @@ def _neighbours(line: ln.Line, pool: Sequence[ln.Line]) -> list[ln.Line]:
 
 
 def _local_search(
-    state: SearchState, j: int, lines: list[ln.Line], errors: np.ndarray,
-    pool: Sequence[ln.Line], recordings: Sequence[Dataset], config: SelectionConfig,
-    states: set[str],
+    lines: list[ln.Line], errors: np.ndarray, pool: Sequence[ln.Line],
+    score: Callable[[list[ln.Line]], np.ndarray], config: SelectionConfig, states: set[str],
 ) -> tuple[list[ln.Line], np.ndarray]:  # fmt: skip
-    """Vary the best lines term by term and simulate the variants: ``config.steps`` rounds.
+    """Vary the best lines term by term and ``score`` the variants: ``config.steps`` rounds.
 
     The lines varied in each round are the two simplest within ``tolerance`` of the best
     simulation error and the best itself. A stand-in term that the derivative fit preferred is
@@ -340,8 +359,37 @@ def _local_search(
         if not new:
             break
         lines = [*lines, *new]
-        errors = np.concatenate([errors, _single_errors(state, j, new, recordings, config)])
+        errors = np.concatenate([errors, score(new)])
     return lines, errors
+
+
+def _choose(
+    lines: Sequence[ln.Line], errors: np.ndarray, config: SelectionConfig, states: set[str]
+) -> tuple[ln.Line, dict[str, object]]:
+    """The simplest line within ``tolerance`` of the best simulation error, and its report:
+    the most accurate dozen candidates, how many were simulated, the Pareto front."""
+    bound = float(np.min(errors)) * (1 + config.tolerance)
+    ranked = sorted(
+        (_complexity(line, states), float(err), i)
+        for i, (line, err) in enumerate(zip(lines, errors, strict=True))
+        if err <= bound
+    )
+    line = lines[ranked[0][-1]]
+    return line, {
+        "candidates": [
+            {"line": lines[i].text, "simulation_nrmse": float(errors[i])}
+            for i in np.argsort(errors, kind="stable")[:12]
+        ],
+        "simulated": len(lines),
+        "pareto": _pareto(
+            [
+                (len(ln.summands(ln_.expr)), float(e), ln_.text)
+                for ln_, e in zip(lines, errors, strict=True)
+                if np.isfinite(e)
+            ]
+        ),
+        "chosen": line.text,
+    }
 
 
 def _single_errors(
@@ -477,38 +525,20 @@ def select_by_simulation(
     report: dict[str, object] = {"equations": {}}
     for j, target in enumerate(contract.targets):
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
-        errors = _single_errors(state, j, lines, sims, config)
+
+        def score(new: list[ln.Line], j: int = j) -> np.ndarray:
+            return _single_errors(state, j, new, sims, config)
+
+        errors = score(lines)
         lines, errors = _local_search(
-            state, j, lines, errors, _term_pool(archived, j, config.terms), sims, config, states
+            lines, errors, _term_pool(archived, j, config.terms), score, config, states
         )
-        best = float(np.min(errors))
-        if not np.isfinite(best):
+        if not np.isfinite(np.min(errors)):
             picked.append(derived[j])
             report["equations"][target] = {"kept": "no candidate simulates"}  # type: ignore[index]
             continue
-        bound = best * (1 + config.tolerance)
-        ranked = sorted(
-            (_complexity(line, states), float(err), i)
-            for i, (line, err) in enumerate(zip(lines, errors, strict=True))
-            if err <= bound
-        )
-        line = lines[ranked[0][-1]]
+        line, report["equations"][target] = _choose(lines, errors, config, states)  # type: ignore[index]
         picked.append(line)
-        report["equations"][target] = {  # type: ignore[index]
-            "candidates": [  # the most accurate dozen
-                {"line": lines[i].text, "simulation_nrmse": float(errors[i])}
-                for i in np.argsort(errors, kind="stable")[:12]
-            ],
-            "simulated": len(lines),
-            "pareto": _pareto(
-                [
-                    (len(ln.summands(ln_.expr)), float(e), ln_.text)
-                    for ln_, e in zip(lines, errors, strict=True)
-                    if np.isfinite(e)
-                ]
-            ),
-            "chosen": line.text,
-        }
     by_derivatives = _coupled_error(derivative_choice, sims, config)
     report["coupled_nrmse_derivative_choice"] = by_derivatives
     if [p.text for p in picked] == [d.text for d in derived]:
@@ -583,6 +613,264 @@ def simulation_nrmse(
     if program is None:
         return float("inf")
     return dae_error(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
+
+
+def _with_constants(line: ln.Line, params: Sequence[float]) -> ast.expr:
+    """``line``'s expression with its fitted parameters written in as constants (exact)."""
+
+    class _Sub(ast.NodeTransformer):
+        def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+            if isinstance(node.value, ast.Name) and node.value.id == "p":
+                value = float(params[node.slice.value])  # type: ignore[attr-defined]
+                const = ast.Constant(abs(value))
+                return ast.UnaryOp(ast.USub(), const) if value < 0 else const
+            return self.generic_visit(node)
+
+    return ast.fix_missing_locations(_Sub().visit(copy.deepcopy(line.expr)))
+
+
+def _canonical(line: ln.Line) -> ln.Line:
+    """``line`` with its parameters numbered in order of appearance (as a skeleton assembled
+    from it numbers them)."""
+    renumber = ln._Renumber()
+    expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(line.expr)))
+    return ln.Line(expr, max(line.n_params, len(renumber.mapping)))
+
+
+class _Inline(ast.NodeTransformer):
+    def __init__(self, name: str, expr: ast.expr) -> None:
+        self.name, self.expr = name, expr
+
+    def visit_Name(self, node: ast.Name) -> ast.expr:
+        return copy.deepcopy(self.expr) if node.id == self.name else node
+
+
+def _closed_errors(
+    ae_state: SearchState, j: int, lines: Sequence[ln.Line], de: Equations,
+    recordings: Sequence[Dataset], config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Each algebraic line's simulation error with only its own variable closed.
+
+    Leave-one-recording-out: the line is fitted (on the AE loop's regressors) with each
+    recording left out, and the held-out recording is simulated with every state integrated by
+    the state equations ``de`` (their parameters as fitted), the line's variable computed by the
+    line from the simulated states, and every other channel played in. The error is the mean
+    NRMSE of the states. The candidates are simulated side by side: one program whose outputs
+    are the state equations once per candidate, the line written in where its variable stands
+    and the states renamed to the candidate's own copies."""
+    target = ae_state.contract.targets[j]
+    states = tuple(de.contract.targets)
+    de_lines, mappings = ln.split_lines(de.source)
+    de_params = np.asarray(de.params, dtype=float)
+    fixed = [
+        _with_constants(line, de_params[list(m)])
+        for line, m in zip(de_lines, mappings, strict=True)
+    ]
+    errors = np.full(len(lines), np.inf)
+    lines = [_canonical(line) for line in lines]
+    compiled = compiled_lines(ae_state.contract, lines)
+    if not compiled:
+        return errors
+    params = _fold_params(ae_state, j, [sk for _, sk in compiled])  # [lines, folds, P]
+    single = len(np.unique(_folds(ae_state))) == 1
+    usable = [
+        (c, i) for c, (i, sk) in enumerate(compiled)
+        if np.all(np.isfinite(params[c, :, : sk.n_params]))
+    ]  # fmt: skip
+    if not usable:
+        return errors
+    folds = params.shape[1]
+    # the states the variable drives are integrated, the others played in
+    driven = [
+        (s, expr) for s, expr in zip(states, fixed, strict=True)
+        if any(isinstance(x, ast.Name) and x.id == target for x in ast.walk(expr))
+    ]  # fmt: skip
+    if not driven:
+        return errors
+    states = tuple(s for s, _ in driven)
+    measured = np.stack([[np.asarray(ds[s], dtype=float) for s in states] for ds in recordings])
+    source_of_play = list(recordings) if played_from is None else list(played_from)
+
+    def simulate(group: list[tuple[int, int]]) -> None:
+        names: list[str] = []
+        closed: list[ln.Line] = []
+        blocks: list[np.ndarray] = []
+        for c, i in group:
+            n = lines[i].n_params
+            for s, expr in driven:
+                uses = any(isinstance(x, ast.Name) and x.id == target for x in ast.walk(expr))
+                line = ln.Line(_Inline(target, lines[i].expr).visit(copy.deepcopy(expr)), 0)
+                for other, _ in driven:
+                    line = _renamed(line, other, f"{other}_c{i}")
+                closed.append(ln.Line(line.expr, n if uses else 0))
+                names.append(f"{s}_c{i}")
+                if uses:
+                    blocks.append(params[c, :, :n])
+        used = set().union(*(line.variables() for line in closed))
+        arguments = dict.fromkeys([*de.contract.arguments, *ae_state.contract.arguments])
+        played = [a for a in arguments if a in used and a not in names]
+        outputs = [f"y{k}" for k in range(len(names))]
+        source = ln.assemble("closed", [*played, *names], closed, outputs)
+        try:
+            program = interp.lower(source, n_outputs=len(names))
+        except (interp.LoweringError, ValueError):
+            if len(group) > 1:
+                simulate(group[: len(group) // 2])
+                simulate(group[len(group) // 2 :])
+            return
+        rows = np.concatenate(blocks, axis=1) if blocks else np.zeros((folds, 1))
+        rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
+        sim = simulate_host(
+            program, names, rows, source_of_play, channels=[*states] * len(group),
+            substeps=config.substeps, blowup=config.blowup,
+        )  # fmt: skip
+        sim = sim.reshape(len(recordings), len(group), len(states), -1)
+        err = _nrmse(sim, np.broadcast_to(measured[:, None], sim.shape))  # [B, group, S]
+        for (_, i), e in zip(group, err.mean(axis=(0, 2)), strict=True):
+            errors[i] = float(e)
+
+    simulate(usable)
+    return errors
+
+
+def select_algebraic(
+    ae_state: SearchState,
+    fit_choice: Equations,
+    de: Equations,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig | None = None,
+    played_from: Sequence[Dataset] | None = None,
+) -> tuple[Equations, dict[str, object]]:
+    """The AE loop's final equations chosen by how the model simulates, as the state equations
+    are (:func:`select_by_simulation`).
+
+    The AE loop ranks its candidates by how they fit the algebraic variables on *estimated*
+    states. An algebraic equation of a machine amplifies its regressors' errors (a stator
+    current by 1/x'_d): the true line fits those estimates no better than a stand-in that is
+    measured cleanly or bends to their errors (an input, products and squares of states), and
+    the stand-in fails when the model is simulated. So each algebraic variable the state
+    equations use is chosen here by simulation:
+
+    1. **Each variable alone**: its candidate lines (the fit choice, its pruned variants, the
+       archive's best, then the local search in term space, whose pool adds the loop's most
+       frequent terms over all its equations) are fitted with each recording left out, and the
+       held-out recording is simulated with that variable computed by the line and the states
+       it drives integrated, every other channel played in (:func:`_closed_errors`). The
+       simplest line within ``tolerance`` of the best is that variable's choice.
+    2. **Closed**: the choices join the fit choice one variable at a time, in the loop's
+       order, and each is kept only if the closed model (every state integrated, every
+       algebraic variable computed, fits held out: :func:`_closed_loro`) then simulates the
+       training recordings better by more than ``tolerance``.
+
+    A variable the state equations do not use keeps its fit choice: it does not change how the
+    model simulates. ``recordings`` are the training recordings (the measured states the
+    rollouts are compared with), in the order of the AE problem's groups; ``played_from`` the
+    recordings the other channels and the initial states are played in from (default: the
+    same; :func:`jaxdmd.pipeline.discover` passes the AE loop's regressors, the estimated
+    states). Returns the equations (parameters fitted on all recordings) and a report: per
+    variable the candidates, the Pareto front, the choice and the closed error with it; the
+    closed error of the fit choice and of the result; the variables changed.
+    """
+    config = config or SelectionConfig()
+    recordings = list(recordings)
+    t0 = np.asarray(recordings[0].t)
+    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+        return fit_choice, {"skipped": "the recordings do not share a time grid"}
+    contract = ae_state.contract
+    states = {v.name for v in de.contract.states}
+    de_lines, _ = ln.split_lines(de.source)
+    used = set().union(*(line.variables() for line in de_lines))
+    derived, _ = ln.split_lines(fit_choice.source)
+    archived = _archive_lines(ae_state)
+    # the algebraic variables share their physics (a stator current and the power are built
+    # from the same voltages): the loop's most frequent terms over all its equations may
+    # serve any of them
+    shared = _shared_terms(archived, 2 * config.terms)
+    picked: list[ln.Line] = []
+    report: dict[str, object] = {"equations": {}}
+    for j, target in enumerate(contract.targets):
+        if target not in used:
+            picked.append(derived[j])
+            continue
+        lines = _candidate_lines(archived, j, derived[j], config.candidates)
+
+        def score(new: list[ln.Line], j: int = j) -> np.ndarray:
+            return _closed_errors(ae_state, j, new, de, recordings, config, played_from)
+
+        errors = score(lines)
+        pool = _term_pool(archived, j, config.terms)
+        lines, errors = _local_search(lines, errors, [*pool, *shared], score, config, states)
+        if not np.isfinite(np.min(errors)):
+            picked.append(derived[j])
+            report["equations"][target] = {"kept": "no candidate simulates"}  # type: ignore[index]
+            continue
+        line, report["equations"][target] = _choose(lines, errors, config, states)  # type: ignore[index]
+        picked.append(line)
+    # the chosen lines join the closed model one at a time, each kept only if the closed model
+    # then simulates the training recordings (fits held out) better by more than the tolerance
+    by_fit = _closed_loro(ae_state, derived, de, recordings, config, played_from)
+    report["dae_nrmse_fit_choice"] = by_fit
+    current_lines, error = list(derived), by_fit
+    changed: list[str] = []
+    for j, target in enumerate(contract.targets):
+        if picked[j].text == current_lines[j].text:
+            continue
+        trial_lines = [*current_lines[:j], picked[j], *current_lines[j + 1 :]]
+        trial_error = _closed_loro(ae_state, trial_lines, de, recordings, config, played_from)
+        report["equations"][target]["dae_nrmse"] = trial_error  # type: ignore[index]
+        if trial_error * (1 + config.tolerance) < error:
+            current_lines, error = trial_lines, trial_error
+            changed.append(target)
+    report["dae_nrmse"] = error
+    report["changed"] = changed
+    chosen = _assemble(ae_state, current_lines) if changed else None
+    if chosen is None:
+        report["changed"] = []
+        return fit_choice, report
+    return chosen, report
+
+
+def _closed_loro(
+    ae_state: SearchState, lines: Sequence[ln.Line], de: Equations,
+    recordings: Sequence[Dataset], config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
+) -> float:  # fmt: skip
+    """Mean NRMSE of the states of the closed model (state equations ``de``, algebraic lines
+    ``lines``), each recording simulated with the algebraic lines fitted on the others; inf if
+    a line does not compile or fit, or a rollout diverged."""
+    lines = [_canonical(line) for line in lines]
+    compiled = compiled_lines(ae_state.contract, lines)
+    if len(compiled) != len(lines):
+        return float("inf")
+    blocks = []
+    for j, (_, sk) in enumerate(compiled):
+        p = _fold_params(ae_state, j, [sk])[0, :, : lines[j].n_params]  # [folds, n]
+        if not np.all(np.isfinite(p)):
+            return float("inf")
+        blocks.append(p)
+    contract = ae_state.contract
+    source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
+    try:
+        program = interp.lower(source, n_outputs=len(lines))
+    except (interp.LoweringError, ValueError):
+        return float("inf")
+    rows = np.concatenate(blocks, axis=1)
+    b = len(recordings)
+    rows = rows if rows.shape[0] == b else np.repeat(rows[:1], b, axis=0)
+    skeleton = de.skeleton()
+    de_program = interp.program_of(skeleton)
+    if de_program is None:
+        return float("inf")
+    p = np.asarray(de.params, dtype=float)[None, : max(1, skeleton.n_params)]
+    states = tuple(de.contract.targets)
+    play = list(recordings) if played_from is None else list(played_from)
+    sim = simulate_host(
+        de_program, states, np.repeat(p, b, axis=0), play,
+        algebraic=(program, tuple(contract.targets), rows),
+        substeps=config.substeps, blowup=config.blowup,
+    )  # fmt: skip
+    return float(np.mean(simulation_error(sim, recordings, states)))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -153,3 +153,60 @@ def test_a_stand_in_that_wins_on_derivatives_loses_in_simulation():
     assert _terms(line) == {"p * x", "p * y"}, line.text
     assert "y" in report["changed"]
     assert report["coupled_nrmse"] < report["coupled_nrmse_derivative_choice"]
+
+
+def _tracker(n: int = 3, noise: float = 0.01, gain: float = 20.0) -> list[Dataset]:
+    """d x/dt = u - y with y = 20 (x - theta): x tracks a slow angle theta closely, and the
+    algebraic channel y amplifies x's measurement noise twentyfold. On the data y is close to
+    u (x - theta settles at u / 20), so the clean input u fits y better than the true line,
+    whose regressor x is noisy; closed with the state equation, u leaves x standing still."""
+    t = np.linspace(0.0, 10.0, 1001)
+    out = []
+    for k in range(n):
+        rng = np.random.default_rng(k)
+        theta = 0.3 * np.sin((0.2 + 0.05 * k) * t + k)
+        u = 1.0 + 0.5 * np.sin((0.3 + 0.1 * k) * t + 2 * k)
+        x = np.empty_like(t)
+        x[0] = theta[0] + u[0] / gain
+        for i in range(t.size - 1):
+            xi, h = x[i], (t[i + 1] - t[i]) / 50
+            for m in range(50):
+                w = m / 50
+                th, uu = (1 - w) * theta[i] + w * theta[i + 1], (1 - w) * u[i] + w * u[i + 1]
+                xi += h * (uu - gain * (xi - th))
+            x[i + 1] = xi
+        channels = {
+            "x": x + noise * np.ptp(x) * rng.normal(size=t.shape),
+            "u": u,
+            "theta": theta,
+            "y": gain * (x - theta),
+        }
+        roles = {"x": "state", "u": "input", "theta": "input", "y": "algebraic"}
+        out.append(Dataset.create(t, channels, roles).with_estimated_derivatives())
+    return out
+
+
+def test_an_algebraic_stand_in_that_wins_on_fit_loses_in_simulation():
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.select import _terms, select_algebraic
+
+    recordings = _tracker()
+    _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
+    source = "def f(u, y, p):\n    return p[0] * u + p[1] * y\n"
+    de = search.Equations(contract, source, (1.0, -1.0), (0.0,), 0.0)
+    problem, ae_contract = ae_problem(recordings, contract)
+    config = search.SearchConfig(
+        n_islands=3, prompts_per_round=2, samples_per_prompt=4, max_rounds=6
+    )
+    state = search.init(problem, ae_contract, jax.random.key(0), config)
+    state = run_loop(state, OfflineProposer.for_problem(problem))
+    by_fit = search.final_equations(state)
+    # the premise: the fit to the algebraic channel prefers the clean stand-in u to x
+    assert "x" not in ln.split_lines(by_fit.source)[0][0].variables(), by_fit.readable()
+    chosen, report = select_algebraic(state, by_fit, de, recordings)
+    line, _ = ln.split_lines(chosen.source)
+    assert _terms(line[0]) == {"p * x", "p * theta"}, line[0].text
+    assert report["changed"] == ["y"]
+    assert report["dae_nrmse"] < 0.1 * report["dae_nrmse_fit_choice"]
+    low, high = sorted(chosen.params)  # the gains of theta and x: -20 and 20
+    assert abs(low + 20.0) < 1.0 and abs(high - 20.0) < 1.0
