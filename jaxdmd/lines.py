@@ -208,6 +208,19 @@ def with_summand(line: Line, term: Line) -> Line:
     return Line(ast.fix_missing_locations(expr), line.n_params + len(renumber.mapping))
 
 
+def renumbered(line: Line) -> Line:
+    """``line`` with its parameters numbered in order of appearance, as :func:`assemble` numbers
+    them (so parameters fitted to a skeleton assembled from the line are in the line's order)."""
+    renumber = _Renumber()
+    expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(line.expr)))
+    return Line(expr, max(line.n_params, len(renumber.mapping)))
+
+
+def inlined(expr: ast.expr, env: dict[str, ast.expr]) -> ast.expr:
+    """``expr`` with each name of ``env`` replaced by (a copy of) its expression."""
+    return ast.fix_missing_locations(_Inline(env).visit(copy.deepcopy(expr)))
+
+
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
     """The expression with fitted parameter values in place of ``p[i]`` (for readable output)."""
 

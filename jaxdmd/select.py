@@ -285,35 +285,32 @@ def _candidate_lines(
     return list(out.values())
 
 
+def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> list[ln.Line]:
+    """The ``k`` one-parameter terms found in most of ``lines``; ties in the order the lines
+    come, or by the terms' text (``by_text``)."""
+    count: dict[str, int] = {}
+    first: dict[str, ln.Line] = {}
+    for line in lines:
+        for term in ln.simple_summands(line):
+            count[term.text] = count.get(term.text, 0) + 1
+            first.setdefault(term.text, term)
+    order = (lambda key: (-count[key], key)) if by_text else (lambda key: -count[key])
+    return [first[key] for key in sorted(first, key=order)[:k]]  # stable: input order on ties
+
+
 def _term_pool(
     archived: Sequence[tuple[tuple[float, ...], tuple[ln.Line, ...]]], j: int, k: int
 ) -> list[ln.Line]:
     """The ``k`` one-parameter terms of equation ``j`` found in most archived lines (ties: in
     the order of the lines' training loss)."""
-    count: dict[str, int] = {}
-    first: dict[str, ln.Line] = {}
-    for _, lines in sorted(archived, key=lambda e: e[0][j]):
-        for term in ln.simple_summands(lines[j]):
-            key = term.text
-            count[key] = count.get(key, 0) + 1
-            first.setdefault(key, term)
-    ranked = sorted(first, key=lambda key: -count[key])  # stable: loss order breaks ties
-    return [first[key] for key in ranked[:k]]
+    return _frequent_terms([lines[j] for _, lines in sorted(archived, key=lambda e: e[0][j])], k)
 
 
 def _shared_terms(
     archived: Sequence[tuple[tuple[float, ...], tuple[ln.Line, ...]]], k: int
 ) -> list[ln.Line]:
     """The ``k`` one-parameter terms found in most archived lines of any equation."""
-    count: dict[str, int] = {}
-    first: dict[str, ln.Line] = {}
-    for _, lines in archived:
-        for line in lines:
-            for term in ln.simple_summands(line):
-                count[term.text] = count.get(term.text, 0) + 1
-                first.setdefault(term.text, term)
-    ranked = sorted(first, key=lambda key: (-count[key], key))
-    return [first[key] for key in ranked[:k]]
+    return _frequent_terms([line for _, lines in archived for line in lines], k, by_text=True)
 
 
 def _key(line: ln.Line) -> frozenset[str]:
@@ -392,6 +389,30 @@ def _choose(
     }
 
 
+def _usable_fits(
+    state: SearchState, j: int, lines: Sequence[ln.Line]
+) -> tuple[list[tuple[int, Skeleton]], np.ndarray, list[tuple[int, int]]]:
+    """The lines that compile as equation ``j`` (``(index, skeleton)``), their parameters
+    fitted with each recording left out (``[compiled, folds, P_max]``, :func:`_fold_params`),
+    and the ``(compiled index, line index)`` of those whose every fold fit is finite."""
+    compiled = compiled_lines(state.contract, lines)
+    if not compiled:
+        return compiled, np.zeros((0, 1, 1)), []
+    params = _fold_params(state, j, [sk for _, sk in compiled])
+    usable = [
+        (c, i) for c, (i, sk) in enumerate(compiled)
+        if np.all(np.isfinite(params[c, :, : sk.n_params]))
+    ]  # fmt: skip
+    return compiled, params, usable
+
+
+def _per_recording(rows: np.ndarray, state: SearchState, n: int) -> np.ndarray:
+    """Fold parameter rows ``[folds, P]`` as one row per recording (``n``): the fold that left
+    each recording out, or the single fit repeated when there is nothing to hold out."""
+    single = len(np.unique(_folds(state))) == 1
+    return np.repeat(rows, n, axis=0) if single or rows.shape[0] == 1 else rows
+
+
 def _single_errors(
     state: SearchState, j: int, lines: Sequence[ln.Line], recordings: Sequence[Dataset],
     config: SelectionConfig,
@@ -402,18 +423,9 @@ def _single_errors(
     renamed to its own copy, so one evaluation per step serves every candidate."""
     target = state.contract.targets[j]
     errors = np.full(len(lines), np.inf)
-    compiled = compiled_lines(state.contract, lines)
-    if not compiled:
-        return errors
-    params = _fold_params(state, j, [sk for _, sk in compiled])  # [lines, folds, P]
-    single = len(np.unique(_folds(state))) == 1
-    usable = [
-        (c, i) for c, (i, sk) in enumerate(compiled)
-        if np.all(np.isfinite(params[c, :, : sk.n_params]))
-    ]  # fmt: skip
+    compiled, params, usable = _usable_fits(state, j, lines)
     if not usable:
         return errors
-    folds = params.shape[1]
 
     def simulate(group: list[tuple[int, int]]) -> None:
         """Simulate a group of lines in one program; halve the group if it is too large."""
@@ -435,7 +447,7 @@ def _single_errors(
             [params[c, :, : max(compiled[c][1].n_params, lines[i].n_params)] for c, i in group],
             axis=1,
         )  # [folds, sum of the lines' parameters], in the assembled order
-        rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
+        rows = _per_recording(rows, state, len(recordings))
         sim = simulate_host(
             program, copies, rows, recordings, channels=[target] * len(copies),
             substeps=config.substeps, blowup=config.blowup,
@@ -571,20 +583,26 @@ def dae_error(
     ae_params: np.ndarray,
     recordings: Sequence[Dataset],
     config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
 ) -> float:
     """Mean NRMSE of the states of the closed model (the algebraic variables computed by the AE
-    program) simulated on ``recordings``; inf if a rollout diverged."""
+    program) simulated on ``recordings``; inf if a rollout diverged. ``ae_params`` is one
+    parameter vector, or ``[B, P]``: one row per recording. The other channels and the initial
+    states are played in from ``played_from`` (default: ``recordings``)."""
     skeleton = de.skeleton()
     program = interp.program_of(skeleton)
     if program is None:
         return float("inf")
     b = len(recordings)
     p = np.asarray(de.params, dtype=float)[None, : max(1, skeleton.n_params)]
-    q = np.asarray(ae_params, dtype=float)[None, : max(1, ae_program.n_params)]
+    q = np.asarray(ae_params, dtype=float)
+    if q.ndim == 1:
+        q = np.repeat(q[None, : max(1, ae_program.n_params)], b, axis=0)
     targets = tuple(de.contract.targets)
     sim = simulate_host(
-        program, targets, np.repeat(p, b, axis=0), recordings,
-        algebraic=(ae_program, tuple(ae_targets), np.repeat(q, b, axis=0)),
+        program, targets, np.repeat(p, b, axis=0),
+        list(recordings) if played_from is None else list(played_from),
+        algebraic=(ae_program, tuple(ae_targets), q),
         substeps=config.substeps, blowup=config.blowup,
     )  # fmt: skip
     return float(np.mean(simulation_error(sim, recordings, targets)))
@@ -629,22 +647,6 @@ def _with_constants(line: ln.Line, params: Sequence[float]) -> ast.expr:
     return ast.fix_missing_locations(_Sub().visit(copy.deepcopy(line.expr)))
 
 
-def _canonical(line: ln.Line) -> ln.Line:
-    """``line`` with its parameters numbered in order of appearance (as a skeleton assembled
-    from it numbers them)."""
-    renumber = ln._Renumber()
-    expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(line.expr)))
-    return ln.Line(expr, max(line.n_params, len(renumber.mapping)))
-
-
-class _Inline(ast.NodeTransformer):
-    def __init__(self, name: str, expr: ast.expr) -> None:
-        self.name, self.expr = name, expr
-
-    def visit_Name(self, node: ast.Name) -> ast.expr:
-        return copy.deepcopy(self.expr) if node.id == self.name else node
-
-
 def _closed_errors(
     ae_state: SearchState, j: int, lines: Sequence[ln.Line], de: Equations,
     recordings: Sequence[Dataset], config: SelectionConfig,
@@ -668,19 +670,10 @@ def _closed_errors(
         for line, m in zip(de_lines, mappings, strict=True)
     ]
     errors = np.full(len(lines), np.inf)
-    lines = [_canonical(line) for line in lines]
-    compiled = compiled_lines(ae_state.contract, lines)
-    if not compiled:
-        return errors
-    params = _fold_params(ae_state, j, [sk for _, sk in compiled])  # [lines, folds, P]
-    single = len(np.unique(_folds(ae_state))) == 1
-    usable = [
-        (c, i) for c, (i, sk) in enumerate(compiled)
-        if np.all(np.isfinite(params[c, :, : sk.n_params]))
-    ]  # fmt: skip
+    lines = [ln.renumbered(line) for line in lines]
+    _, params, usable = _usable_fits(ae_state, j, lines)
     if not usable:
         return errors
-    folds = params.shape[1]
     # the states the variable drives are integrated, the others played in
     driven = [
         (s, expr) for s, expr in zip(states, fixed, strict=True)
@@ -698,15 +691,13 @@ def _closed_errors(
         blocks: list[np.ndarray] = []
         for c, i in group:
             n = lines[i].n_params
-            for s, expr in driven:
-                uses = any(isinstance(x, ast.Name) and x.id == target for x in ast.walk(expr))
-                line = ln.Line(_Inline(target, lines[i].expr).visit(copy.deepcopy(expr)), 0)
+            for s, expr in driven:  # each uses the variable: the line's parameters
+                line = ln.Line(ln.inlined(expr, {target: lines[i].expr}), n)
                 for other, _ in driven:
                     line = _renamed(line, other, f"{other}_c{i}")
-                closed.append(ln.Line(line.expr, n if uses else 0))
+                closed.append(line)
                 names.append(f"{s}_c{i}")
-                if uses:
-                    blocks.append(params[c, :, :n])
+                blocks.append(params[c, :, :n])
         used = set().union(*(line.variables() for line in closed))
         arguments = dict.fromkeys([*de.contract.arguments, *ae_state.contract.arguments])
         played = [a for a in arguments if a in used and a not in names]
@@ -719,8 +710,7 @@ def _closed_errors(
                 simulate(group[: len(group) // 2])
                 simulate(group[len(group) // 2 :])
             return
-        rows = np.concatenate(blocks, axis=1) if blocks else np.zeros((folds, 1))
-        rows = np.repeat(rows, len(recordings), axis=0) if single or folds == 1 else rows
+        rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
         sim = simulate_host(
             program, names, rows, source_of_play, channels=[*states] * len(group),
             substeps=config.substeps, blowup=config.blowup,
@@ -809,7 +799,8 @@ def select_algebraic(
         picked.append(line)
     # the chosen lines join the closed model one at a time, each kept only if the closed model
     # then simulates the training recordings (fits held out) better by more than the tolerance
-    by_fit = _closed_loro(ae_state, derived, de, recordings, config, played_from)
+    fits: dict[tuple[int, str], np.ndarray | None] = {}
+    by_fit = _closed_loro(ae_state, derived, de, recordings, config, played_from, fits)
     report["dae_nrmse_fit_choice"] = by_fit
     current_lines, error = list(derived), by_fit
     changed: list[str] = []
@@ -817,7 +808,9 @@ def select_algebraic(
         if picked[j].text == current_lines[j].text:
             continue
         trial_lines = [*current_lines[:j], picked[j], *current_lines[j + 1 :]]
-        trial_error = _closed_loro(ae_state, trial_lines, de, recordings, config, played_from)
+        trial_error = _closed_loro(
+            ae_state, trial_lines, de, recordings, config, played_from, fits
+        )
         report["equations"][target]["dae_nrmse"] = trial_error  # type: ignore[index]
         if trial_error * (1 + config.tolerance) < error:
             current_lines, error = trial_lines, trial_error
@@ -835,42 +828,31 @@ def _closed_loro(
     ae_state: SearchState, lines: Sequence[ln.Line], de: Equations,
     recordings: Sequence[Dataset], config: SelectionConfig,
     played_from: Sequence[Dataset] | None = None,
+    fits: dict[tuple[int, str], np.ndarray | None] | None = None,
 ) -> float:  # fmt: skip
     """Mean NRMSE of the states of the closed model (state equations ``de``, algebraic lines
     ``lines``), each recording simulated with the algebraic lines fitted on the others; inf if
-    a line does not compile or fit, or a rollout diverged."""
-    lines = [_canonical(line) for line in lines]
-    compiled = compiled_lines(ae_state.contract, lines)
-    if len(compiled) != len(lines):
-        return float("inf")
+    a line does not compile or fit, or a rollout diverged. ``fits`` keeps each line's fold
+    parameters between calls (a line that stays is not fitted again)."""
+    fits = {} if fits is None else fits
+    lines = [ln.renumbered(line) for line in lines]
     blocks = []
-    for j, (_, sk) in enumerate(compiled):
-        p = _fold_params(ae_state, j, [sk])[0, :, : lines[j].n_params]  # [folds, n]
-        if not np.all(np.isfinite(p)):
+    for j, line in enumerate(lines):
+        if (j, line.text) not in fits:
+            _, params, usable = _usable_fits(ae_state, j, [line])
+            fits[j, line.text] = params[0, :, : line.n_params] if usable else None
+        block = fits[j, line.text]
+        if block is None:
             return float("inf")
-        blocks.append(p)
+        blocks.append(block)
     contract = ae_state.contract
     source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
     try:
         program = interp.lower(source, n_outputs=len(lines))
     except (interp.LoweringError, ValueError):
         return float("inf")
-    rows = np.concatenate(blocks, axis=1)
-    b = len(recordings)
-    rows = rows if rows.shape[0] == b else np.repeat(rows[:1], b, axis=0)
-    skeleton = de.skeleton()
-    de_program = interp.program_of(skeleton)
-    if de_program is None:
-        return float("inf")
-    p = np.asarray(de.params, dtype=float)[None, : max(1, skeleton.n_params)]
-    states = tuple(de.contract.targets)
-    play = list(recordings) if played_from is None else list(played_from)
-    sim = simulate_host(
-        de_program, states, np.repeat(p, b, axis=0), play,
-        algebraic=(program, tuple(contract.targets), rows),
-        substeps=config.substeps, blowup=config.blowup,
-    )  # fmt: skip
-    return float(np.mean(simulation_error(sim, recordings, states)))
+    rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
+    return dae_error(de, program, contract.targets, rows, recordings, config, played_from)
 
 
 # ----------------------------------------------------------------------------------------------
