@@ -521,7 +521,8 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     the integral form (``refit_integral``, ``config.refit_window``); the states estimated with
     that DE (``model_states``; the generic smoother if it fails), the AE fitted to the AE loop's
     problem on them (``ae_problem``), then ``refit_bias_compensated`` and ``refit_joint`` (kept
-    if it fails). Returns the DE and AE as :class:`jaxdmd.search.Equations` and what each step
+    if it fails), then both refitted by simulation (``refit_simulation``: kept if it simulates
+    left-out recordings better). Returns the DE and AE as :class:`jaxdmd.search.Equations` and what each step
     gave (parameters after every step, NMSEs, the refits' reports).
     """
     import jax
@@ -603,6 +604,15 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
         except (ValueError, np.linalg.LinAlgError) as err:
             joint = {"kept": f"the joint refit failed: {err}"}
         info["ae_joint_refit"] = joint
+    if config.selection is not None:
+        from jaxdmd.simfit import refit_simulation
+
+        selection = config.selection
+        de, ae, info["simulation_refit"] = refit_simulation(
+            de, ae, train, regressors, tolerance=selection.tolerance,
+            substeps=selection.substeps, blowup=selection.blowup,
+        )  # fmt: skip
+        info["de_params"] = named(ORACLE_DE_PARAMS, de.params)
     info["ae_params"] = named(ORACLE_AE_PARAMS, ae.params)
     return de, ae, info
 

@@ -56,6 +56,7 @@ from jaxdmd.select import (
     select_by_simulation,
     simulation_nrmse,
 )
+from jaxdmd.simfit import refit_simulation
 
 __all__ = [
     "Discovery",
@@ -662,8 +663,7 @@ def discover(
             ae_seconds += ae_selection["seconds"]
             if ae_selection.get("changed"):
                 observer.message(
-                    "AE equations chosen by simulation: "
-                    + ", ".join(ae_selection["changed"])  # type: ignore[arg-type]
+                    "AE equations chosen by simulation: " + ", ".join(ae_selection["changed"])  # type: ignore[arg-type]
                 )
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:
@@ -683,6 +683,19 @@ def discover(
                 joint_report = {"kept": f"the joint refit failed: {err}"}
             joint_report["seconds"] = time.perf_counter() - start
             ae_seconds += joint_report["seconds"]
+        simulation_report = None
+        if config.selection is not None:
+            observer.message("AE and DE refit by simulation, checked on left-out recordings ...")
+            de_before = de
+            de, ae, simulation_report = refit_simulation(
+                de, ae, train, regressors, tolerance=config.selection.tolerance,
+                substeps=config.selection.substeps, blowup=config.selection.blowup,
+            )  # fmt: skip
+            ae_seconds += simulation_report["seconds"]
+            if de is not de_before:  # the state equations' parameters changed with the AE's
+                report["de"]["params"] = list(de.params)
+                report["de"]["equations"] = de.readable()
+                report["de"]["simulation_refit"] = "refitted with the AE equations (see ae)"
         summary = _loop_summary(ae_state, ae, ae_seconds)
         if ae_selection is not None:
             summary["selection"] = ae_selection
@@ -692,6 +705,8 @@ def discover(
             summary["states"] = _estimate_summary(estimates)
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
             summary["joint_refit"] = joint_report
+        if simulation_report is not None:
+            summary["simulation_refit"] = simulation_report
         if test:
             from jaxdmd.rollout import algebraic_r2
 
