@@ -522,8 +522,8 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     that DE (``model_states``; the generic smoother if it fails), the AE fitted to the AE loop's
     problem on them (``ae_problem``), then ``refit_bias_compensated`` and ``refit_joint`` (kept
     if it fails), then both refitted by simulation (``refit_simulation``: kept if it simulates
-    left-out recordings better). Returns the DE and AE as :class:`jaxdmd.search.Equations` and what each step
-    gave (parameters after every step, NMSEs, the refits' reports).
+    left-out recordings better). Returns the DE and AE as :class:`jaxdmd.search.Equations` and
+    what each step gave (parameters after every step, NMSEs, the refits' reports).
     """
     import jax
 
