@@ -13,10 +13,11 @@ from jaxdmd.report import Progress
 
 
 def load_recordings(paths: Sequence[str], args: argparse.Namespace | None = None) -> list[Dataset]:
-    """The recordings, with the roles of the role flags (`jaxdmd.cli_data.load_data`)."""
+    """The recordings, with the roles of the role flags and the events of ``--events``
+    (`jaxdmd.cli_data.load_data`)."""
     from jaxdmd.cli_data import load_data, role_flags
 
-    if args is None or not role_flags(args):
+    if args is None or not (role_flags(args) or getattr(args, "events", None) is not None):
         return [Dataset.load(p) for p in paths]
     return load_data(paths, args)
 

@@ -674,6 +674,32 @@ def parse_times(values: Any, column: str = "t") -> np.ndarray:
     return (stamps - stamps[0]).astype(np.int64) / 1e9
 
 
+def _check_events(
+    events: Iterable[Any], span: tuple[float, float] | None = None
+) -> tuple[float, ...]:
+    """Event times as sorted distinct floats (`Dataset.create`, `Dataset.with_events`).
+
+    Raises:
+        DataError: an event that is not a number or not finite, or, with ``span`` = ``(t0,
+            t1)``, one outside ``[t0, t1]`` (naming the time and the span).
+    """
+    evs: list[float] = []
+    for e in events:
+        try:
+            ev = float(e)
+        except (TypeError, ValueError):
+            raise DataError(f"events must be numbers, got {e!r}") from None
+        if not math.isfinite(ev):
+            raise DataError(f"events must be finite, got {e!r}")
+        if span is not None and not span[0] <= ev <= span[1]:
+            raise DataError(
+                f"event at t = {ev!r} s is outside the record's time span [{span[0]!r}, "
+                f"{span[1]!r}] s"
+            )
+        evs.append(ev)
+    return tuple(sorted(set(evs)))
+
+
 def _check_finite(name: str, arr: np.ndarray, kind: str = "column") -> None:
     """Raise a DataError naming ``name`` and the first row holding a NaN or an infinity."""
     bad = ~np.isfinite(arr)
@@ -856,16 +882,7 @@ class Dataset(eqx.Module):
             if name not in names:
                 raise DataError(f"units name column {name!r}, which is not among the channels")
         unit_list = tuple(str(units.get(name, "")) for name in names)
-        evs: list[float] = []
-        for e in events:
-            try:
-                ev = float(e)
-            except (TypeError, ValueError):
-                raise DataError(f"events must be numbers, got {e!r}") from None
-            if not math.isfinite(ev):
-                raise DataError(f"events must be finite, got {e!r}")
-            evs.append(ev)
-        evs = sorted(set(evs))
+        evs = _check_events(events)
         values = np.stack(cols, axis=1) if cols else np.zeros((n, 0))
         states = [nm for nm, r in zip(names, role_list, strict=True) if r == "state"]
         if derivatives is None:
@@ -893,7 +910,7 @@ class Dataset(eqx.Module):
             names=names,
             roles=tuple(role_list),
             units=unit_list,
-            events=tuple(evs),
+            events=evs,
             label=str(label),
         )
 
@@ -1128,6 +1145,28 @@ class Dataset(eqx.Module):
         if smooth:
             values[:, sidx] = xs
         return self._rebuild(values=values, derivatives=dx)
+
+    def with_events(self, events: Iterable[float], **diff_kw: Any) -> Dataset:
+        """The same recording with the event times ``events`` (fault on, fault clear) in place
+        of its own.
+
+        The times are checked as `create` checks them (numbers, finite; sorted, duplicates
+        dropped) and must lie in the record's time span ``[t[0], t[-1]]``. If the recording has
+        states, their derivatives are re-estimated with `differentiate` split at the new events
+        (options ``diff_kw``), as `create` estimates them when none are given: a `Dataset` does
+        not record whether its derivatives were estimated, and estimates split at the wrong
+        events smear the jumps. Derivatives given to `create` (exact ones, from a simulator) are
+        replaced as well; to keep them, give the events when building or loading the recording
+        (``Dataset.create(..., events=...)``, ``Dataset.load(path, events=...)``). The values
+        are kept.
+
+        Raises:
+            DataError: an event that is not a finite number, or one outside the time span
+                (naming the time and the span).
+        """
+        t = np.asarray(self.t)
+        evs = _check_events(events, span=(float(t[0]), float(t[-1])))
+        return self._rebuild(events=evs).with_estimated_derivatives(**diff_kw)
 
     # -- I/O ------------------------------------------------------------------------------------
 

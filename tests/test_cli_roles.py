@@ -10,7 +10,8 @@ import pytest
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd.cli_data import load_data, role_flags
-from jaxdmd.data import DataError
+from jaxdmd.cli_diagnose import load_recordings
+from jaxdmd.data import DataError, Dataset
 from jaxdmd.run import main, parse_args
 
 
@@ -36,14 +37,14 @@ def test_discover_runs_on_a_csv_without_sidecar(csv, tmp_path, capsys):
     code = main([
         "discover", "--data", str(csv), "--states", "x", "--inputs", "u", "--boundary", "V",
         "--rounds", "1", "--skip-ae", "--prompts", "1", "--samples", "2", "--islands", "1",
-        "--out", str(out),
+        "--events", "1.0", "--out", str(out),
     ])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["de"]["targets"] == ["x"]
     assert summary["settings"]["states"] == ["x"] and summary["settings"]["boundary"] == ["V"]
     run = json.loads((out / "run.json").read_text())  # --resume reads the data the same way
-    assert run["inputs"] == ["u"]
+    assert run["inputs"] == ["u"] and run["events"] == "1.0"
 
 
 def test_flags_give_roles_and_errors_name_file_column_and_flag(csv):
@@ -103,3 +104,70 @@ def test_diagnose_runs_on_a_csv_without_sidecar(csv, tmp_path, capsys):
     ])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     assert (out / "report.md").exists()
+
+
+def step_error(ds):
+    """The largest error of the estimated d/dt x in the 0.1 s after the step of u at 1 s."""
+    t = ds.t
+    exact = np.where(t >= 1.0, 2.0 * np.exp(-(t - 1.0) / 0.5), 0.0)
+    after = (t >= 1.0) & (t < 1.1)
+    return np.abs(ds.derivative("x") - exact)[after].max()
+
+
+ROLE_ARGS = ("--states", "x", "--inputs", "u", "--boundary", "V")
+
+
+def test_events_flag_splits_the_derivatives_at_the_step(csv, tmp_path):
+    (smeared,) = load_data([csv], args(*ROLE_ARGS))
+    assert smeared.events == () and step_error(smeared) > 0.5  # of a jump of 2 in d/dt x
+    other = tmp_path / "other.csv"
+    other.write_text(csv.read_text())
+    sharp = load_data([csv, other], args(*ROLE_ARGS, "--events", "1.0"))
+    for ds in sharp:  # every file
+        assert ds.events == (1.0,) and step_error(ds) < 1e-3
+    # the same estimate as giving the events afterwards
+    np.testing.assert_array_equal(smeared.with_events([1.0]).derivatives, sharp[0].derivatives)
+
+    # without role flags too (roles from the sidecar, whose events are replaced), and in diagnose
+    csv.with_name(csv.name + ".json").write_text(
+        json.dumps({"roles": {"x": "state", "u": "input", "V": "boundary"}, "events": [2.0]})
+    )
+    (ds,) = load_data([csv], args("--events", "1.0"))
+    assert ds.events == (1.0,) and step_error(ds) < 1e-3
+    a = parse_args(["diagnose", "--data", str(csv), "--model", "classical", "--events", "1.0"])
+    (ds,) = load_recordings([str(csv)], a)
+    assert ds.events == (1.0,)
+    (ds,) = load_data([csv], args("--events", ""))  # '' removes them
+    assert ds.events == ()
+
+
+def test_events_flag_keeps_the_derivatives_a_file_stores(csv):
+    rec = Dataset.load(csv, roles={"x": "state", "u": "input", "V": "boundary"})
+    given = np.cos(rec.t)  # not an estimate: kept, not re-estimated at the events
+    stored = csv.with_name("stored.csv")  # with d/dt x and a sidecar
+    Dataset.create(
+        rec.t,
+        rec.channels(),
+        dict(zip(rec.names, rec.roles, strict=True)),
+        derivatives={"x": given},
+    ).save(stored)
+    (ds,) = load_data([stored], args("--events", "0.5,1.0"))
+    assert ds.events == (0.5, 1.0)
+    np.testing.assert_array_equal(ds.derivative("x"), given)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("1.0,abc", "--events '1.0,abc': 'abc' is not a time in seconds"),
+        ("1.0,,1.1", "--events '1.0,,1.1': '' is not a time in seconds"),
+        ("1.0,nan", "--events '1.0,nan': events must be finite"),
+        ("1.0,5", r"--events '1.0,5': event at t = 5.0 s is outside the record's time span "
+         r"\[0.0, 2.99\] s"),
+    ],
+)  # fmt: skip
+def test_a_bad_events_flag_names_the_flag_and_the_value(csv, value, message):
+    with pytest.raises(DataError, match=message) as err:
+        load_data([csv], args(*ROLE_ARGS, "--events", value))
+    if "outside" in message:
+        assert str(csv) in str(err.value)

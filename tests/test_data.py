@@ -104,6 +104,23 @@ def test_window(ds):
         ds.window(5.0, 6.0)
 
 
+def test_with_events(ds):
+    moved = ds.with_events([1.05, 0.5, 0.5])  # sorted, duplicates dropped
+    assert moved.events == (0.5, 1.05) and ds.events == (1.0, 1.1)
+    np.testing.assert_array_equal(moved.values, ds.values)
+    # derivatives re-estimated at the new events, as create estimates them (the exact are gone)
+    est = Dataset.create(T, channels(), ROLE, UNITS, events=(0.5, 1.05), label="gen31")
+    assert_same(moved, est)
+    assert ds.select(["V"]).with_events([2.0]).events == (2.0,)  # no states: nothing to estimate
+    assert ds.with_events([0.0, 3.0]).events == (0.0, 3.0)  # the span's ends are inside it
+    with pytest.raises(DataError, match=r"event at t = 3.5 s is outside .* span \[0.0, 3.0\] s"):
+        ds.with_events([1.0, 3.5])
+    with pytest.raises(DataError, match="events must be finite"):  # the checks of create
+        ds.with_events([float("inf")])
+    with pytest.raises(DataError, match="events must be numbers, got 'x'"):
+        ds.with_events(["x"])
+
+
 def test_with_noise(ds):
     noisy = ds.with_noise(jax.random.key(0), level=0.01)
     for name in ds.names:
