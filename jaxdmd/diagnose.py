@@ -343,6 +343,8 @@ class Diagnosis:
     joined: tuple[str, ...] = ()
     wall_time_s: float = 0.0
     window: float | None = None  # s, the integral form's window (None: derivatives)
+    # the training data the refitted and extended models were fitted to (their standard errors)
+    problem: Problem | None = field(repr=False, default=None, compare=False)
 
     @property
     def errors_of(self) -> str:
@@ -358,18 +360,27 @@ class Diagnosis:
 
     def physical(self) -> dict[str, Any]:
         """The physical parameters of each model (``given``, ``refit``, ``extended``:
-        :func:`jaxdmd.physical.physical_parameters` of its state equations, values without
-        standard errors); a model that cannot be read is left out."""
+        :func:`jaxdmd.physical.physical_parameters` of its state equations); a model that cannot
+        be read is left out.
+
+        The refitted and extended models' parameters carry standard errors from the fit that
+        produced them: the training `problem` (integral or derivative form), with the errors
+        correlated over its overlapping windows (``correlated=True``). The given model's have
+        none: its values were not estimated from these data, and the uncertainty the data leave
+        for its structure is the refitted model's."""
         from jaxdmd.physical import physical_parameters
 
         out: dict[str, Any] = {}
         for name, e in (("given", self.given), ("refit", self.refit), ("extended", self.extended)):
             if e is None:
                 continue
-            try:
-                out[name] = physical_parameters(e)
-            except Exception:  # a report must not fail on the mapping
-                continue
+            problem = None if name == "given" else self.problem
+            for data in (problem, None) if problem is not None else (None,):  # errors may fail
+                try:
+                    out[name] = physical_parameters(e, None, data, correlated=True)
+                    break
+                except Exception:  # a report must not fail on the mapping
+                    continue
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -810,6 +821,7 @@ def diagnose(
         joined=joined,
         wall_time_s=time.perf_counter() - start,
         window=config.window,
+        problem=problem,
     )
 
 

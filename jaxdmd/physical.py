@@ -50,6 +50,21 @@ and the physical parameters get their errors by the delta method (jax gradients 
 The residuals of matched (smoothed) derivative fits are correlated in time, so these errors are
 lower bounds; where the equations' parameters were refitted on other data than the problem given
 (an integral-form refit), s^2 is that of the given problem at those parameters.
+
+With ``correlated=True`` (what :mod:`jaxdmd.diagnose` uses) the rows' errors are instead taken as
+correlated wherever the operator's windows share samples (the integral form's overlapping
+windows, the matched smoothing's band; rows of different recordings never), and each line's
+covariance is the sandwich ``N/(N-P) B (sum_{i,j} g_i g_j^T) B``, ``B = (J^T W J)^-1``,
+``g_i = w_i r_i J_i``, over the pairs of rows whose windows overlap (a
+heteroskedasticity-and-autocorrelation-consistent estimate with a uniform kernel as wide as the
+windows: white noise on the samples makes the residuals correlated over exactly that span).
+Measured over thirty noise draws (0.5 % of each state's range; three 10 s recordings, 0.01 s
+samples) of the classical machine with damping, refitted in the integral form (3 s windows):
+the estimates of Omega_b, H and D scattered 3.5-5.9x more than the plain ``s^2 (J^T W J)^-1``
+errors (13-47 % of them within two errors of the truth), 1.2-1.3x more than these (83-93 %);
+with matched derivatives 1.2-5.3x and 0.8-1.1x (87-93 %). These are still somewhat low when a
+recording holds few windows (the residuals are fitted ones), and one draw's error is itself
+uncertain by about +-40 %.
 """
 
 from __future__ import annotations
@@ -229,6 +244,8 @@ def line_covariance(
     target: Any,
     weights: Any = None,
     operator: Any = None,
+    *,
+    correlated: bool = False,
 ) -> np.ndarray:
     """``s^2 (J^T W J)^-1`` of a one-output skeleton at ``params`` on the given data.
 
@@ -236,6 +253,8 @@ def line_covariance(
     compares them) with respect to the parameters, ``W`` the sample weights,
     ``s^2 = sum(w r^2) / (N_w - P)`` with ``N_w`` the number of samples of positive weight.
     A singular ``J^T W J`` gives ``inf`` variances where the parameter is not determined.
+    With ``correlated``, the sandwich over the rows whose ``operator`` windows overlap instead
+    (module docstring; without an operator, rows are independent but may differ in variance).
     """
     p = jnp.asarray(np.asarray(params, dtype=float))
     y = jnp.asarray(np.asarray(target, dtype=float)).reshape(-1)
@@ -255,15 +274,48 @@ def line_covariance(
     jtj = np.asarray(jac.T @ (w[:, None] * jac), dtype=float)
     if not np.all(np.isfinite(jtj)):
         return np.full((p.shape[0], p.shape[0]), np.inf)
+    singular = False
     try:
-        cov = np.linalg.inv(jtj) * s2
+        bread = np.linalg.inv(jtj)
     except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(jtj) * s2
+        bread, singular = np.linalg.pinv(jtj), True
+    if correlated:
+        g = np.asarray(w * r, dtype=float)[:, None] * np.asarray(jac, dtype=float)
+        cov = bread @ _overlap_sum(g, operator) @ bread * (n_eff / dof)
+    else:
+        cov = bread * s2
+    if singular:
         cov[np.diag(jtj) <= 0] = np.inf
     return cov
 
 
-def _line_covariances(eqs: Equations, problem: Problem) -> list[np.ndarray | None]:
+def _overlap_sum(g: np.ndarray, operator: Any) -> np.ndarray:
+    """``sum g_i g_j^T`` over the pairs of rows whose ``operator`` windows share samples
+    (``|i - j| <= L``, both in one run of overlapping windows: one recording), made positive
+    semi-definite. Without an operator, ``sum g_i g_i^T``."""
+    n = g.shape[0]
+    if operator is None:
+        return g.T @ g
+    index = np.asarray(operator.index)
+    lo, hi = index.min(axis=1), index.max(axis=1)
+    span = int(np.max(hi - lo))  # rows further apart than this share no sample
+    run = np.concatenate([[0], np.cumsum(hi[:-1] < lo[1:])])  # a new run where windows part
+    first = np.searchsorted(run, run, side="left")
+    last = np.searchsorted(run, run, side="right") - 1
+    rows = np.arange(n)
+    upper = np.minimum(rows + span, last)
+    lower = np.maximum(rows - span, first)
+    cumulative = np.concatenate([np.zeros((1, g.shape[1])), np.cumsum(g, axis=0)])
+    near = cumulative[upper + 1] - cumulative[lower]  # sum of g_j over the overlapping rows
+    total = g.T @ near
+    total = (total + total.T) / 2
+    values, vectors = np.linalg.eigh(total)
+    return (vectors * np.maximum(values, 0.0)) @ vectors.T
+
+
+def _line_covariances(
+    eqs: Equations, problem: Problem, correlated: bool = False
+) -> list[np.ndarray | None]:
     """Each line's parameter covariance on ``problem`` (None where it cannot be computed)."""
     lines, mappings = ln.split_lines(eqs.source)
     compiled = dict(compiled_lines(eqs.contract, lines))
@@ -284,6 +336,7 @@ def _line_covariances(eqs: Equations, problem: Problem) -> list[np.ndarray | Non
                     problem.targets[row],
                     sample_weights(problem, row),
                     problem.operator,
+                    correlated=correlated,
                 )
             )
         except (KeyError, ValueError):
@@ -306,6 +359,19 @@ class PhysicalParameter:
     unit: str
     source: str
     note: str = ""
+
+    def value_text(self) -> str:
+        """The value as the reports print it."""
+        return f"{self.value:.6g}" if math.isfinite(self.value) else str(self.value)
+
+    def stderr_text(self) -> str:
+        """The standard error as the reports print it (empty when there is none)."""
+        return "" if self.stderr is None else f"{self.stderr:.3g}"
+
+    def text(self) -> str:
+        """``value ± stderr``, or the value alone when there is no standard error."""
+        se = self.stderr_text()
+        return f"{self.value_text()} ± {se}" if se else self.value_text()
 
     def to_dict(self) -> dict[str, Any]:
         def num(x):
@@ -374,8 +440,7 @@ class PhysicalReport:
             out += ["", "| parameter | value | std. error | unit | from | note |"]
             out += ["|---|---|---|---|---|---|"]
             for p in self.parameters:
-                se = "" if p.stderr is None else f"{p.stderr:.3g}"
-                val = f"{p.value:.6g}" if math.isfinite(p.value) else str(p.value)
+                val, se = p.value_text(), p.stderr_text()
                 out.append(f"| {p.name} | {val} | {se} | {p.unit} | {p.source} | {p.note} |")
         bad = [e for e in self.equations if not e.matched]
         if bad:
@@ -439,10 +504,13 @@ def physical_parameters(
     ae: Equations | None = None,
     de_problem: Problem | None = None,
     ae_problem: Problem | None = None,
+    *,
+    correlated: bool = False,
 ) -> PhysicalReport:
     """Match the discovered equations with the machine-model families and map their
     coefficients to physical parameters (module docstring). The problems, when given, are the
-    loops' data, for standard errors; without them every ``stderr`` is None."""
+    loops' data, for standard errors; without them every ``stderr`` is None. ``correlated``:
+    errors correlated over the problems' operator windows (`line_covariance`)."""
     de_lines, de_notes, n_de = _split(de, 0)
     ae_lines, ae_notes, n_all = _split(ae, n_de) if ae is not None else ([], [], n_de)
     # stacked parameters and block-diagonal covariance (NaN where no data: stderr None)
@@ -453,7 +521,11 @@ def physical_parameters(
         if eqs is None:
             continue
         lines, mappings = ln.split_lines(eqs.source)
-        covs = _line_covariances(eqs, problem) if problem is not None else [None] * len(lines)
+        covs = (
+            _line_covariances(eqs, problem, correlated)
+            if problem is not None
+            else [None] * len(lines)
+        )
         off = start
         for line, mapping, c in zip(lines, mappings, covs, strict=True):
             end = off + line.n_params

@@ -357,16 +357,26 @@ def _columns(results: dict[str, object]) -> list[str]:
 
 def physical_table(reports: dict) -> list[str]:
     """The ``## Physical parameters`` section of a diagnosis: one column per model (given,
-    refitted, extended), each parameter :func:`jaxdmd.physical.physical_parameters` maps; empty
-    when no model maps to a machine-model family."""
+    refitted, extended), each parameter :func:`jaxdmd.physical.physical_parameters` maps, as
+    ``value ± standard error`` where one is known (`PhysicalParameter.text`); empty when no
+    model maps to a machine-model family."""
     cols = [k for k in _COLUMNS if k in reports]
     if not any(reports[k].family for k in cols):
         return []
+    with_errors = [_COLUMNS[k] for k in cols if any(p.stderr for p in reports[k].parameters)]
+    if with_errors:
+        errors = (
+            f"{', '.join(with_errors)}: ± one standard error of the fit to the training data "
+            "(`docs/diagnose.md`)"
+            + ("; given parameters: none, they were not fitted" if "given" in cols else "")
+        )
+    else:
+        errors = "no standard errors here"
     out = ["## Physical parameters", ""]
     out.append(
         "Family: "
         + ", ".join(f"{_COLUMNS[k]} **{reports[k].family or 'none'}**" for k in cols)
-        + " (`jaxdmd.physical`; on the data's per-unit base; no standard errors here)."
+        + f" (`jaxdmd.physical`; on the data's per-unit base; {errors})."
     )
     names: list[str] = []
     for k in cols:
@@ -383,7 +393,7 @@ def physical_table(reports: dict) -> list[str]:
             elif p.note == "not in the model":
                 cells.append("0 (not in the model)")
             else:
-                cells.append(f"{p.value:.6g}" if np.isfinite(p.value) else str(p.value))
+                cells.append(p.text())
         note = next((p.note for p in found if p is not None and p.note != "not in the model"), "")
         out.append(f"| {n} | {unit} | " + " | ".join(cells) + f" | {note} |")
     for k in cols:

@@ -40,9 +40,16 @@ GEN = 31
 NOISE = 0.005  # of each state's range
 
 
-def recordings(model: MachineModel, keep: tuple[str, ...] | None = None, noise: float = NOISE):
+def simulate(model: MachineModel, noise: float = NOISE):
     data = paper_protocol(n_train=3, n_test=1, noise=noise, model=model, generators=[GEN])
     assert data.stable, f"the test data lose synchronism: {data.out_of_step}"
+    return data
+
+
+def recordings(
+    model: MachineModel, keep: tuple[str, ...] | None = None, noise: float = NOISE, data=None
+):
+    data = simulate(model, noise) if data is None else data
     train, test = list(data.train[GEN]), list(data.test[GEN])
     if keep is not None:
 
@@ -88,9 +95,15 @@ def check_gain(result, factor: float = 10.0) -> None:
 
 
 @pytest.fixture(scope="module")
-def damping_data():
+def damping_protocol():
     model = MachineModel(name="classical", damping=20.0)
-    return model, *recordings(model)
+    return model, simulate(model)
+
+
+@pytest.fixture(scope="module")
+def damping_data(damping_protocol):
+    model, data = damping_protocol
+    return model, *recordings(model, data=data)
 
 
 @pytest.mark.slow
@@ -194,6 +207,64 @@ def test_wrong_parameters_are_a_parameter_error(damping_data):
     assert result.cause.kind == "parameter", result.cause
     assert result.extended is None
     assert result.metrics["given"]["nrmse"] > 2 * result.metrics["refit"]["nrmse"]
+
+
+SWING = (
+    "def equation(omega, P_m, P_e, p):\n"
+    "    return p[0] * (omega - 1), p[1] * P_m + p[2] * P_e + p[3] * (omega - 1)\n"
+    "TARGETS = ['delta', 'omega']\n"
+)
+
+
+def test_physical_parameters_carry_the_standard_errors_of_the_fit(damping_protocol):
+    """The refitted model's physical parameters get standard errors from the fit that produced
+    them (the integral form on the training data): the true values lie within three of them,
+    and they scale with the noise (the same noise draw, five times weaker: about five times
+    smaller). The given parameters were not fitted and get none. The report prints value ±
+    error."""
+    from jaxdmd.grid.protocol import generator_dataset
+    from jaxdmd.report import physical_table
+
+    truth, data = damping_protocol
+    M, D = machine(truth, "M"), machine(truth, "D")
+    true = {"Omega_b": 2 * np.pi * 60, "H": M / 2, "D": D}
+    wrong = [2 * np.pi * 60, 1.3 / M, -1.3 / M, -0.5 * D / M]
+    model = parse_model(SWING + f"PARAMS = {wrong!r}\n", name="swing.py")
+    test = list(data.test[GEN])
+
+    def noisy(level):
+        return [
+            generator_dataset(data.train_result, GEN, i, noise=level, key=jax.random.key(i))
+            for i in range(len(data.train[GEN]))
+        ]
+
+    config = DiagnoseConfig(rounds=0)
+    noisy_fit = diagnose(noisy(NOISE), model, test=test, config=config)
+    quiet_fit = diagnose(noisy(NOISE / 5), model, test=test, config=config)
+    errors = {}
+    for name, result in (("noisy", noisy_fit), ("quiet", quiet_fit)):
+        physical = result.physical()
+        assert physical["refit"].family == "classical"
+        assert all(p.stderr is None for p in physical["given"].parameters)
+        errors[name] = {}
+        for n, value in true.items():
+            p = physical["refit"].get(n)
+            assert p.stderr is not None and 0 < p.stderr < 0.05 * abs(value), (n, p)
+            assert abs(p.value - value) < 3 * p.stderr, (name, n, p.value, value, p.stderr)
+            errors[name][n] = p.stderr
+    for n in true:
+        assert 3 < errors["noisy"][n] / errors["quiet"][n] < 8, (n, errors)
+    # the report and the JSON carry them
+    section = "\n".join(physical_table(noisy_fit.physical()))
+    assert "± one standard error" in section and "no standard errors" not in section
+    row = next(r for r in section.splitlines() if r.startswith("| H |")).split("|")
+    given_cell, refit_cell = row[3].strip(), row[4].strip()
+    assert "±" not in given_cell and float(given_cell) == pytest.approx(M / 2 / 1.3, rel=1e-3)
+    value, se = (float(x) for x in refit_cell.split("±"))
+    assert se == pytest.approx(errors["noisy"]["H"], rel=1e-2)
+    saved = noisy_fit.to_dict()["physical_parameters"]
+    h = next(p for p in saved["refit"]["parameters"] if p["name"] == "H")
+    assert h["stderr"] == pytest.approx(errors["noisy"]["H"])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -328,7 +399,7 @@ def test_cli_diagnose_reports_given_or_refitted_parameters_truthfully(
     physical = report.split("## Physical parameters", 1)[1]
     assert "**classical**" in physical
     rows = {r.split("|")[1].strip(): r.split("|")[3:-2] for r in physical.splitlines() if "|" in r}
-    refit_h = float(rows["H"][-1])
+    refit_h = float(rows["H"][-1].split("±")[0])  # the refitted column: value ± error
     assert refit_h == pytest.approx(M / 2, rel=0.1)
     assert saved["physical_parameters"]["refit"]["family"] == "classical"
     if given:

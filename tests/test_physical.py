@@ -471,3 +471,45 @@ def test_terminal_voltage_form_of_the_field_winding():
     _close(rep, "x_d / x'_d", ratio)
     _close(rep, "x_d / x'_d (from e_qp)", ratio)
     assert rep.family == "psat-5.1"
+
+
+def test_correlated_standard_errors_match_the_scatter_of_integral_form_fits():
+    """In the integral form the windows overlap, so the rows' errors are correlated: over noise
+    draws the estimates scatter more than the plain s^2 (J^T W J)^-1 says; the errors with
+    ``correlated=True`` (sandwich over the overlapping rows) match the scatter."""
+    from jaxdmd.data import Dataset
+    from jaxdmd.physical import line_covariance
+    from jaxdmd.problems import integral_operator
+    from jaxdmd.skeleton import compile_skeleton
+
+    t = np.linspace(0.0, 15.0, 1501)
+    xs, us = [], []
+    for k in range(2):  # two recordings of dx/dt = -2 x + u
+        xs.append(np.sin(0.7 * t + k) + 0.5 * np.cos(1.9 * t))
+        us.append(0.7 * np.cos(0.7 * t + k) - 0.95 * np.sin(1.9 * t) + 2 * xs[-1])
+    recordings = [
+        Dataset.create(t, {"x": x, "u": u}, {"x": "state", "u": "input"}, derivatives={"x": u})
+        for x, u in zip(xs, us, strict=True)
+    ]
+    op, ends = integral_operator(recordings, 1.0)
+    clean, u = jnp.asarray(np.concatenate(xs)), jnp.asarray(np.concatenate(us))
+    skeleton = compile_skeleton(
+        "def f(x, u, p):\n    return p[0] * x + p[1] * u\n", variables=("x", "u"), n_outputs=1
+    )
+    rng = np.random.default_rng(0)
+    estimates, plain, correlated = [], [], []
+    for _ in range(60):
+        x = clean + 0.02 * rng.normal(size=clean.shape)
+        y = x[ends[:, 1]] - x[ends[:, 0]]
+        design = np.stack([np.asarray(op(x)), np.asarray(op(u))], axis=1)
+        coef, *_ = np.linalg.lstsq(design, np.asarray(y), rcond=None)
+        data = {"x": x, "u": u}
+        estimates.append(coef)
+        plain.append(np.sqrt(np.diag(line_covariance(skeleton, coef, data, y, None, op))))
+        cov = line_covariance(skeleton, coef, data, y, None, op, correlated=True)
+        correlated.append(np.sqrt(np.diag(cov)))
+    scatter = np.std(estimates, axis=0, ddof=1)
+    assert np.mean(estimates, axis=0) == pytest.approx([-2.0, 1.0], rel=0.02)
+    assert np.all(scatter / np.mean(plain, axis=0) > 1.4)  # the plain errors are too small
+    ratio = scatter / np.mean(correlated, axis=0)
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
