@@ -365,7 +365,7 @@ class Diagnosis:
 
         The refitted and extended models' parameters carry standard errors from the fit that
         produced them: the training `problem` (integral or derivative form), with the errors
-        correlated over its overlapping windows (``correlated=True``). The given model's have
+        correlated over its overlapping windows. The given model's have
         none: its values were not estimated from these data, and the uncertainty the data leave
         for its structure is the refitted model's."""
         from jaxdmd.physical import physical_parameters
@@ -377,7 +377,7 @@ class Diagnosis:
             problem = None if name == "given" else self.problem
             for data in (problem, None) if problem is not None else (None,):  # errors may fail
                 try:
-                    out[name] = physical_parameters(e, None, data, correlated=True)
+                    out[name] = physical_parameters(e, None, data)
                     break
                 except Exception:  # a report must not fail on the mapping
                     continue

@@ -44,20 +44,21 @@ X_q all follow; with one line, X_d = X_q is assumed (PSAT 5.1, classical). The P
 reported but not used.
 
 Standard errors (nothing is refitted): at each line's fitted parameters the Jacobian J of its
-(operator-smoothed, weighted) predictions on the loop's data gives cov = s^2 (J^T W J)^-1,
-s^2 = sum(w r^2) / (N - P). Different lines are taken as independent (block-diagonal covariance)
-and the physical parameters get their errors by the delta method (jax gradients of the maps).
-The residuals of matched (smoothed) derivative fits are correlated in time, so these errors are
-lower bounds; where the equations' parameters were refitted on other data than the problem given
-(an integral-form refit), s^2 is that of the given problem at those parameters.
+(operator-smoothed, weighted) predictions on the loop's data and the residuals r give the
+line's covariance. Different lines are taken as independent (block-diagonal covariance) and the
+physical parameters get their errors by the delta method (jax gradients of the maps). Where the
+equations' parameters were refitted on other data than the problem given (an integral-form
+refit, the refit by simulation), the residuals are those of the given problem at those
+parameters.
 
-With ``correlated=True`` (what :mod:`jaxdmd.diagnose` uses) the rows' errors are instead taken as
-correlated wherever the operator's windows share samples (the integral form's overlapping
-windows, the matched smoothing's band; rows of different recordings never), and each line's
-covariance is the sandwich ``N/(N-P) B (sum_{i,j} g_i g_j^T) B``, ``B = (J^T W J)^-1``,
-``g_i = w_i r_i J_i``, over the pairs of rows whose windows overlap (a
+The rows' errors are correlated wherever the operator's windows share samples (the integral
+form's overlapping windows, the matched smoothing's band; rows of different recordings never),
+so each line's covariance is the sandwich ``N/(N-P) B (sum_{i,j} g_i g_j^T) B``,
+``B = (J^T W J)^-1``, ``g_i = w_i r_i J_i``, over the pairs of rows whose windows overlap (a
 heteroskedasticity-and-autocorrelation-consistent estimate with a uniform kernel as wide as the
 windows: white noise on the samples makes the residuals correlated over exactly that span).
+``correlated=False`` gives the textbook ``s^2 (J^T W J)^-1``, ``s^2 = sum(w r^2) / (N - P)``,
+which takes the rows as independent and is too small on such fits:
 Measured over thirty noise draws (0.5 % of each state's range; three 10 s recordings, 0.01 s
 samples) of the classical machine with damping, refitted in the integral form (3 s windows):
 the estimates of Omega_b, H and D scattered 3.5-5.9x more than the plain ``s^2 (J^T W J)^-1``
@@ -245,16 +246,17 @@ def line_covariance(
     weights: Any = None,
     operator: Any = None,
     *,
-    correlated: bool = False,
+    correlated: bool = True,
 ) -> np.ndarray:
-    """``s^2 (J^T W J)^-1`` of a one-output skeleton at ``params`` on the given data.
+    """The parameter covariance of a one-output skeleton at ``params`` on the given data.
 
     ``J`` is the Jacobian (``jax.jacfwd``) of the predictions (after ``operator``, as the fit
     compares them) with respect to the parameters, ``W`` the sample weights,
     ``s^2 = sum(w r^2) / (N_w - P)`` with ``N_w`` the number of samples of positive weight.
     A singular ``J^T W J`` gives ``inf`` variances where the parameter is not determined.
-    With ``correlated``, the sandwich over the rows whose ``operator`` windows overlap instead
-    (module docstring; without an operator, rows are independent but may differ in variance).
+    With ``correlated`` (the default) the sandwich over the rows whose ``operator`` windows
+    overlap (module docstring; without an operator, rows are independent but may differ in
+    variance); without it ``s^2 (J^T W J)^-1``.
     """
     p = jnp.asarray(np.asarray(params, dtype=float))
     y = jnp.asarray(np.asarray(target, dtype=float)).reshape(-1)
@@ -314,7 +316,7 @@ def _overlap_sum(g: np.ndarray, operator: Any) -> np.ndarray:
 
 
 def _line_covariances(
-    eqs: Equations, problem: Problem, correlated: bool = False
+    eqs: Equations, problem: Problem, correlated: bool = True
 ) -> list[np.ndarray | None]:
     """Each line's parameter covariance on ``problem`` (None where it cannot be computed)."""
     lines, mappings = ln.split_lines(eqs.source)
@@ -505,12 +507,12 @@ def physical_parameters(
     de_problem: Problem | None = None,
     ae_problem: Problem | None = None,
     *,
-    correlated: bool = False,
+    correlated: bool = True,
 ) -> PhysicalReport:
     """Match the discovered equations with the machine-model families and map their
     coefficients to physical parameters (module docstring). The problems, when given, are the
-    loops' data, for standard errors; without them every ``stderr`` is None. ``correlated``:
-    errors correlated over the problems' operator windows (`line_covariance`)."""
+    loops' data, for standard errors; without them every ``stderr`` is None. ``correlated``
+    (default): errors correlated over the problems' operator windows (`line_covariance`)."""
     de_lines, de_notes, n_de = _split(de, 0)
     ae_lines, ae_notes, n_all = _split(ae, n_de) if ae is not None else ([], [], n_de)
     # stacked parameters and block-diagonal covariance (NaN where no data: stderr None)

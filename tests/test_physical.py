@@ -243,7 +243,7 @@ def test_standard_errors_match_ordinary_least_squares():
     s2 = r @ r / (len(r) - 2)
     cov = s2 * np.linalg.inv(x.T @ x)
     de = _equations(de_c, src, new)
-    rep = physical_parameters(de, ae, de_problem, ae_problem)
+    rep = physical_parameters(de, ae, de_problem, ae_problem, correlated=False)  # textbook
     m = rep.get("M")
     # delta method by hand: M = -1/c, dM/dc = 1/c^2
     assert m.value == pytest.approx(-1 / coef[1])
@@ -505,8 +505,9 @@ def test_correlated_standard_errors_match_the_scatter_of_integral_form_fits():
         coef, *_ = np.linalg.lstsq(design, np.asarray(y), rcond=None)
         data = {"x": x, "u": u}
         estimates.append(coef)
-        plain.append(np.sqrt(np.diag(line_covariance(skeleton, coef, data, y, None, op))))
-        cov = line_covariance(skeleton, coef, data, y, None, op, correlated=True)
+        textbook = line_covariance(skeleton, coef, data, y, None, op, correlated=False)
+        plain.append(np.sqrt(np.diag(textbook)))
+        cov = line_covariance(skeleton, coef, data, y, None, op)
         correlated.append(np.sqrt(np.diag(cov)))
     scatter = np.std(estimates, axis=0, ddof=1)
     assert np.mean(estimates, axis=0) == pytest.approx([-2.0, 1.0], rel=0.02)
