@@ -96,6 +96,8 @@ def run_diagnose(args: argparse.Namespace) -> int:
     )
     path = write_report(args.out, result)
     c = result.cause
+    for a in result.assumptions:
+        progress.console.print(f"\n[bold]Not measured[/bold]: {a}")
     progress.console.print(f"\n[bold]Cause ({c.kind})[/bold]: {c.summary}")
     if result.extended is not None:
         from jaxdmd import pretty

@@ -66,6 +66,7 @@ __all__ = [
     "load_model",
     "parse_model",
     "report_markdown",  # re-exported from jaxdmd.report
+    "unmeasured_inputs",
     "write_report",  # re-exported from jaxdmd.report
 ]
 
@@ -159,6 +160,49 @@ def builtin_model(name: str, channels: Sequence[str] = ("P_m", "v_f")) -> UserMo
         ) from None
     source = _builtin_source(key, frozenset(channels) & {"P_m", "v_f"})
     return UserModel(name=key, source=source, targets=_STATES[key])
+
+
+# The machine's inputs a model may lack: the equation each enters, what it is, and the model
+# that would give its variation when it is not measured.
+_INPUTS: dict[str, tuple[str, str, str]] = {
+    "P_m": ("omega", "the mechanical power", "a governor model"),
+    "v_f": ("e_qp", "the field voltage", "an exciter model"),
+}
+
+
+def unmeasured_inputs(model: UserModel, channels: Sequence[str]) -> dict[str, str]:
+    """The inputs the model's equations need but neither use nor find in the data, each with
+    the sentence that says what is assumed instead.
+
+    An input counts when the model integrates the state whose equation it enters (P_m: omega,
+    v_f: e_qp), does not take it as an argument and the data lack it: the equation then holds
+    it constant (a built-in model folds it into a fitted offset).
+    """
+    terms = {
+        t: set(eq.terms) if eq.opaque is None else set()
+        for t, eq in zip(model.targets, parse_equations(model.source), strict=True)
+    }
+    out = {}
+    for name, (state, what, _) in _INPUTS.items():
+        if state not in model.targets or name in model.arguments or name in channels:
+            continue
+        how = (
+            f"fitted as an offset in d{state}/dt"
+            if "1" in terms[state]
+            else f"d{state}/dt has no term for it"
+        )
+        out[name] = f"{name} ({what}) is not measured: assumed constant ({how})"
+    return out
+
+
+def input_caveat(state: str | None, unmeasured: Sequence[str]) -> str:
+    """What a term found in d<state>/dt may be when an input of that equation is not measured."""
+    names = [n for n in unmeasured if _INPUTS[n][0] == state]
+    return "; ".join(
+        f"{n} is not measured and assumed constant: the term found may stand in for its "
+        f"variation (measure {n} or give {_INPUTS[n][2]})"
+        for n in names
+    )
 
 
 def _literal(node: ast.expr, name: str, path: str) -> Any:
@@ -285,6 +329,8 @@ class Cause:
     term: str | None = None
     variables: tuple[str, ...] = ()
     explained: float = 0.0
+    # the term may stand in for an unmeasured input of its equation (also in ``summary``)
+    caveat: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -294,6 +340,7 @@ class Cause:
             "variables": list(self.variables),
             "explained": self.explained,
             "summary": self.summary,
+            "caveat": self.caveat or None,
         }
 
 
@@ -343,6 +390,9 @@ class Diagnosis:
     joined: tuple[str, ...] = ()
     wall_time_s: float = 0.0
     window: float | None = None  # s, the integral form's window (None: derivatives)
+    # inputs the model needs that the data lack, and what is assumed instead (sentences)
+    unmeasured: tuple[str, ...] = ()
+    assumptions: tuple[str, ...] = ()
     # the training data the refitted and extended models were fitted to (their standard errors)
     problem: Problem | None = field(repr=False, default=None, compare=False)
 
@@ -400,6 +450,8 @@ class Diagnosis:
                 "targets": list(self.model.targets),
                 "params_given": self.model.params is not None,
             },
+            "unmeasured": list(self.unmeasured),
+            "assumptions": list(self.assumptions),
             "cause": self.cause.to_dict(),
             "also": [c.to_dict() for c in self.also],
             "candidates": {k: [c.to_dict() for c in v] for k, v in self.candidates.items()},
@@ -673,23 +725,30 @@ def _cause(
     held_metrics: dict[str, dict[str, Any]],
     nmse: dict[str, dict[str, float]],
     config: DiagnoseConfig,
+    unmeasured: Sequence[str] = (),
 ) -> Cause:
-    """The verdict: a structural cause if a term explains enough, else parameters, else none."""
+    """The verdict: a structural cause if a term explains enough, else parameters, else none.
+
+    A term found in an equation that an unmeasured input enters (``unmeasured``) is named with
+    the caveat that it may stand in for that input's variation."""
     if flagged:
         eq_name = flagged[0].equation
         pick = _simplest([c for c in ranking[eq_name] if c.explained > 0])
         what = f"variable {', '.join(pick.new_variables)}" if pick.new_variables else "a term"
+        caveat = input_caveat(eq_name, unmeasured)
         return Cause(
             kind="missing variable" if pick.new_variables else "missing term",
             summary=(
                 f"the d{eq_name}/dt equation lacks {what}: adding {pick.term}"
                 f"{' with an offset' if pick.offset else ''} removes "
                 f"{pick.explained:.0%} of its residual on data it was not fitted to"
+                + (f". Caveat: {caveat}" if caveat else "")
             ),
             equation=eq_name,
             term=pick.term,
             variables=pick.new_variables or pick.variables,
             explained=pick.explained,
+            caveat=caveat,
         )
     before, refit = held_metrics.get("given"), held_metrics["refit"]
     if before is not None and before["nrmse"] > config.parameter_gain * refit["nrmse"]:
@@ -741,6 +800,7 @@ def diagnose(
     key = jax.random.key(0) if key is None else key
     train, held, held_text = split_held_out(train, test)
     _check_data(model, [*train, *held])
+    assumed = unmeasured_inputs(model, train[0].names)
     states = model.targets
     library = [a for a in model.arguments if a not in states]
     problem, contract = de_problem(
@@ -777,7 +837,7 @@ def diagnose(
         (c for cands in ranking.values() for c in cands[:1] if c.explained >= config.threshold),
         key=lambda c: -c.explained,
     )
-    cause = _cause(ranking, flagged, held_metrics, nmse, config)
+    cause = _cause(ranking, flagged, held_metrics, nmse, config, tuple(assumed))
     also = tuple(c for c in flagged if c.equation != cause.equation)
 
     # 4. the extension
@@ -822,6 +882,8 @@ def diagnose(
         wall_time_s=time.perf_counter() - start,
         window=config.window,
         problem=problem,
+        unmeasured=tuple(assumed),
+        assumptions=tuple(assumed.values()),
     )
 
 

@@ -417,6 +417,7 @@ def report_markdown(d: Diagnosis) -> str:
     physical parameters side by side (:func:`physical_table`) when one maps to a family.
     """
     from jaxdmd import pretty
+    from jaxdmd.diagnose import input_caveat
 
     states = d.model.targets
     out = [f"# Diagnosis of `{d.model.name}`", ""]
@@ -429,9 +430,22 @@ def report_markdown(d: Diagnosis) -> str:
         ),
         "",
     ]
+    if d.assumptions:
+        out += ["## Not measured", ""]
+        out += [f"- {a}." for a in d.assumptions]
+        out += [
+            "",
+            "A term found in an equation such an input enters may stand in for the input's "
+            "variation.",
+            "",
+        ]
     out += [f"**Cause ({d.cause.kind})**: {d.cause.summary}.", ""]
     for c in d.also:
-        out.append(f"Also: d{c.equation}/dt, {c.term} explains {c.explained:.0%} of its residual.")
+        caveat = input_caveat(c.equation, d.unmeasured)
+        out.append(
+            f"Also: d{c.equation}/dt, {c.term} explains {c.explained:.0%} of its residual"
+            + (f" (caveat: {caveat})." if caveat else ".")
+        )
     out += ["", f"Held-out data: {d.held_out}.", ""]
     out += ["## What the simulation gets wrong", "", "![trajectories](trajectories.png)", ""]
     errors_of = "its given parameters" if d.errors_of == "given" else "refitted parameters"

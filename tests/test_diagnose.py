@@ -29,6 +29,7 @@ from jaxdmd.diagnose import (
     diagnose,
     load_model,
     parse_model,
+    report_markdown,
     split_held_out,
     write_report,
 )
@@ -134,11 +135,16 @@ def test_missing_damping_is_named_recovered_and_pays(damping_data, tmp_path):
     assert (tmp_path / "trajectories.png").stat().st_size > 10_000
 
 
-@pytest.mark.slow
-def test_blocked_governor_model_misses_p_m():
-    """The plant's governor moves P_m; the engineer's model assumed constant mechanical power."""
+@pytest.fixture(scope="module")
+def governor_data():
     truth = MachineModel(name="classical", governor=Governor(droop=0.05, T_g=0.5))
-    train, test = recordings(truth)
+    return truth, *recordings(truth)
+
+
+@pytest.mark.slow
+def test_blocked_governor_model_misses_p_m(governor_data):
+    """The plant's governor moves P_m; the engineer's model assumed constant mechanical power."""
+    truth, train, test = governor_data
     model = parse_model(
         "def equation(omega, P_e, p):\n"
         "    d_delta = p[0] * (omega - 1)\n"
@@ -155,6 +161,87 @@ def test_blocked_governor_model_misses_p_m():
     gain = derivative(result.extended, "omega", "P_m", mean_point(train))
     assert gain == pytest.approx(1 / M, rel=0.05)
     check_gain(result)
+
+
+def without(datasets, name):
+    return [ds.select([n for n in ds.names if n != name]) for ds in datasets]
+
+
+@pytest.mark.slow
+def test_unmeasured_p_m_under_a_governor_is_said_and_caveats_the_cause(governor_data, tmp_path):
+    """The governor moves P_m and the recordings lack it: the built-in model holds P_m constant
+    (an offset), the report and the JSON say so, and whatever term the diagnosis finds in
+    d omega/dt is named with the caveat that it may stand in for P_m's variation."""
+    _, train, test = governor_data
+    train, test = without(train, "P_m"), without(test, "P_m")
+    model = builtin_model("classical", train[0].names)
+    assert "P_m" not in model.arguments
+    result = diagnose(train, model, test=test, config=DiagnoseConfig(rounds=0))
+    assert result.unmeasured == ("P_m",)
+    (assumed,) = result.assumptions
+    assert "P_m" in assumed and "not measured" in assumed and "assumed constant" in assumed
+    assert result.cause.equation == "omega", result.cause
+    assert "P_m is not measured" in result.cause.summary
+    assert "governor model" in result.cause.caveat
+    write_report(tmp_path, result)
+    report = (tmp_path / "report.md").read_text()
+    top = report.split("**Cause", 1)[0]
+    assert "## Not measured" in top and assumed in top
+    assert "may stand in for its variation" in report.split("**Cause", 1)[1].split("\n", 1)[0]
+    saved = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert saved["unmeasured"] == ["P_m"] and saved["assumptions"] == [assumed]
+    assert "P_m is not measured" in saved["cause"]["caveat"]
+
+
+def test_unmeasured_p_m_is_an_assumption_measured_p_m_is_not(damping_data, tmp_path):
+    """Without a P_m channel the diagnosis says P_m is missing and what it assumed (a constant,
+    fitted as an offset in d omega/dt), in the report, the JSON and the cause's caveat; with
+    P_m measured, no assumption is listed."""
+    _, train, test = damping_data
+    config = DiagnoseConfig(rounds=0)
+    bare_train, bare_test = without(train, "P_m"), without(test, "P_m")
+    result = diagnose(
+        bare_train, builtin_model("classical", bare_train[0].names), test=bare_test, config=config
+    )
+    assert result.assumptions == (
+        "P_m (the mechanical power) is not measured: assumed constant "
+        "(fitted as an offset in domega/dt)",
+    )
+    assert result.cause.equation == "omega" and result.cause.kind == "missing term"
+    assert "P_m is not measured and assumed constant" in result.cause.summary
+    write_report(tmp_path, result)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Not measured" in report.split("**Cause", 1)[0]
+    saved = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert saved["unmeasured"] == ["P_m"]
+    assert saved["assumptions"][0].startswith("P_m (the mechanical power) is not measured")
+    assert "may stand in" in saved["cause"]["summary"] and saved["cause"]["caveat"]
+    # P_m measured: nothing assumed, no caveat
+    measured = diagnose(train, builtin_model("classical", train[0].names), test=test, config=config)
+    assert measured.assumptions == () and measured.unmeasured == ()
+    assert measured.cause.caveat == "" and "not measured" not in measured.cause.summary
+    assert "## Not measured" not in report_markdown(measured)
+    assert measured.to_dict()["assumptions"] == []
+
+
+def test_unmeasured_inputs_of_builtin_and_file_models():
+    """Which inputs a model needs but neither uses nor finds in the data: P_m for a model with
+    omega, v_f for one with e_qp; a model file that keeps P_m constant counts too."""
+    from jaxdmd.diagnose import unmeasured_inputs
+
+    channels = ("P_e", "i_d")
+    one_axis = builtin_model("one-axis", channels)
+    assert set(unmeasured_inputs(one_axis, channels)) == {"P_m", "v_f"}
+    assert "offset in de_qp/dt" in unmeasured_inputs(one_axis, channels)["v_f"]
+    full = builtin_model("one-axis", (*channels, "P_m", "v_f"))
+    assert unmeasured_inputs(full, (*channels, "P_m", "v_f")) == {}
+    assert set(unmeasured_inputs(builtin_model("classical", channels), channels)) == {"P_m"}
+    no_offset = parse_model(
+        "def equation(omega, P_e, p):\n    return p[0] * (omega - 1), p[1] * P_e\n",
+        states=("delta", "omega"),
+    )
+    assert "has no term for it" in unmeasured_inputs(no_offset, ("P_e",))["P_m"]
+    assert unmeasured_inputs(no_offset, ("P_e", "P_m")) == {}  # measured, the model ignores it
 
 
 @pytest.mark.slow
