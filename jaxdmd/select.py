@@ -202,9 +202,15 @@ def simulation_error(simulated: np.ndarray, recordings: Sequence[Dataset], targe
     return _nrmse(simulated, measured)
 
 
-def _nrmse(simulated: np.ndarray, measured: np.ndarray) -> np.ndarray:
+def _range(measured: np.ndarray) -> np.ndarray:
+    """The NRMSE's scale ``[B, S]`` of recordings ``[B, S, n]``: each state's measured range
+    (its largest magnitude, at least 1, where it does not move)."""
     scale = np.ptp(measured, axis=2)
-    scale = np.where(scale > 0, scale, np.maximum(np.max(np.abs(measured), axis=2), 1.0))
+    return np.where(scale > 0, scale, np.maximum(np.max(np.abs(measured), axis=2), 1.0))
+
+
+def _nrmse(simulated: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    scale = _range(measured)
     err = np.sqrt(np.mean((simulated - measured) ** 2, axis=2)) / scale
     return np.where(np.isfinite(err), err, np.inf)
 

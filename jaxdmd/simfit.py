@@ -38,22 +38,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdmd.data import Dataset, event_samples
+from jaxdmd import select
+from jaxdmd.data import Dataset
 from jaxdmd.search import Equations
 
 __all__ = ["refit_simulation"]
 
 
 def _played(recordings: Sequence[Dataset], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right values ``[B, n - 1, A]`` of the played-in channels on each interval (the
-    left value held over an interval that ends on an event), as ``select._played``."""
+    """Left and right values ``[B, n - 1, A]`` of the played-in channels on each interval
+    (:func:`jaxdmd.select._played`, stacked)."""
     left, right = [], []
     for ds in recordings:
-        t = np.asarray(ds.t, dtype=float)
-        jump = event_samples(t, ds.events)[1:]
-        x = np.stack([np.asarray(ds[a], dtype=float) for a in names], 1).reshape(len(t), -1)
-        left.append(x[:-1])
-        right.append(np.where(jump[:, None], x[:-1], x[1:]))
+        played, empty = select._played(ds, names), np.zeros((ds.n_samples - 1, 0))
+        left.append(np.stack([played.left[a] for a in names], 1) if names else empty)
+        right.append(np.stack([played.right[a] for a in names], 1) if names else empty)
     return np.stack(left), np.stack(right)
 
 
@@ -89,9 +88,7 @@ class _Simulator:
         )
         y = np.stack([[np.asarray(ds[s], dtype=float) for s in self.states] for ds in measured])
         self.y = jnp.asarray(y)  # [B, S, n]
-        scale = np.ptp(y, axis=2)
-        scale = np.where(scale > 0, scale, np.maximum(np.max(np.abs(y), axis=2), 1.0))
-        self.scale = jnp.asarray(scale)
+        self.scale = jnp.asarray(select._range(y))
         self.bound = jnp.asarray(blowup * (1.0 + np.max(np.abs(y), axis=2)))  # [B, S]
         self.substeps = substeps
 
@@ -159,9 +156,9 @@ class _Simulator:
         out = []
         for sim in self.simulate(theta):
             sim = np.asarray(sim)
-            err = np.sqrt(np.mean((sim - np.asarray(self.y)) ** 2, axis=2)) / np.asarray(self.scale)
+            err = select._nrmse(sim, np.asarray(self.y))
             hit = np.any(np.abs(sim) >= np.asarray(self.bound)[:, :, None], axis=2)
-            out.append(np.where(hit | ~np.isfinite(err), np.inf, err))
+            out.append(np.where(hit, np.inf, err))
         return np.stack(out)
 
 
