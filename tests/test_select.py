@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from tracking import tracking
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import interp, search
@@ -160,30 +161,8 @@ def _tracker(n: int = 3, noise: float = 0.01, gain: float = 20.0) -> list[Datase
     algebraic channel y amplifies x's measurement noise twentyfold. On the data y is close to
     u (x - theta settles at u / 20), so the clean input u fits y better than the true line,
     whose regressor x is noisy; closed with the state equation, u leaves x standing still."""
-    t = np.linspace(0.0, 10.0, 1001)
-    out = []
-    for k in range(n):
-        rng = np.random.default_rng(k)
-        theta = 0.3 * np.sin((0.2 + 0.05 * k) * t + k)
-        u = 1.0 + 0.5 * np.sin((0.3 + 0.1 * k) * t + 2 * k)
-        x = np.empty_like(t)
-        x[0] = theta[0] + u[0] / gain
-        for i in range(t.size - 1):
-            xi, h = x[i], (t[i + 1] - t[i]) / 50
-            for m in range(50):
-                w = m / 50
-                th, uu = (1 - w) * theta[i] + w * theta[i + 1], (1 - w) * u[i] + w * u[i + 1]
-                xi += h * (uu - gain * (xi - th))
-            x[i + 1] = xi
-        channels = {
-            "x": x + noise * np.ptp(x) * rng.normal(size=t.shape),
-            "u": u,
-            "theta": theta,
-            "y": gain * (x - theta),
-        }
-        roles = {"x": "state", "u": "input", "theta": "input", "y": "algebraic"}
-        out.append(Dataset.create(t, channels, roles).with_estimated_derivatives())
-    return out
+    recordings = tracking(n, noise, gain, 1001, (0.2, 0.05, 0.3, 0.1))
+    return [ds.with_estimated_derivatives() for ds in recordings]
 
 
 def test_an_algebraic_stand_in_that_wins_on_fit_loses_in_simulation():

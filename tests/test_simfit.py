@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tracking import tracking
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import interp, search
@@ -19,30 +20,7 @@ GAIN = 5.0
 def _regulator(n: int = 4, noise: float = 0.01) -> list[Dataset]:
     """d x/dt = u - y with y = 5 (x - theta): x follows a slow angle theta, pushed off it by
     u; x is measured with 1 % noise."""
-    t = np.linspace(0.0, 10.0, 501)
-    out = []
-    for k in range(n):
-        rng = np.random.default_rng(10 + k)
-        theta = 0.3 * np.sin((0.3 + 0.07 * k) * t + k)
-        u = 1.0 + 0.5 * np.sin((0.5 + 0.1 * k) * t + 2 * k)
-        x = np.empty_like(t)
-        x[0] = theta[0] + u[0] / GAIN
-        for i in range(t.size - 1):  # fine Euler steps: the truth
-            xi, h = x[i], (t[i + 1] - t[i]) / 50
-            for m in range(50):
-                w = m / 50
-                th, uu = (1 - w) * theta[i] + w * theta[i + 1], (1 - w) * u[i] + w * u[i + 1]
-                xi += h * (uu - GAIN * (xi - th))
-            x[i + 1] = xi
-        channels = {
-            "x": x + noise * np.ptp(x) * rng.normal(size=t.shape),
-            "u": u,
-            "theta": theta,
-            "y": GAIN * (x - theta),
-        }
-        roles = {"x": "state", "u": "input", "theta": "input", "y": "algebraic"}
-        out.append(Dataset.create(t, channels, roles))
-    return out
+    return tracking(n, noise, GAIN, 501, (0.3, 0.07, 0.5, 0.1), seed=10)
 
 
 def _equations(recordings: list[Dataset], ae_params: tuple[float, float]):
