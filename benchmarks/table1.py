@@ -607,11 +607,9 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     if config.selection is not None:
         from jaxdmd.simfit import refit_simulation
 
-        selection = config.selection
         de, ae, info["simulation_refit"] = refit_simulation(
-            de, ae, train, regressors, tolerance=selection.tolerance,
-            substeps=selection.substeps, blowup=selection.blowup,
-        )  # fmt: skip
+            de, ae, train, regressors, config.selection
+        )
         info["de_params"] = named(ORACLE_DE_PARAMS, de.params)
     info["ae_params"] = named(ORACLE_AE_PARAMS, ae.params)
     return de, ae, info

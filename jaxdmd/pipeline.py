@@ -688,9 +688,8 @@ def discover(
             observer.message("AE and DE refit by simulation, checked on left-out recordings ...")
             de_before = de
             de, ae, simulation_report = refit_simulation(
-                de, ae, train, regressors, tolerance=config.selection.tolerance,
-                substeps=config.selection.substeps, blowup=config.selection.blowup,
-            )  # fmt: skip
+                de, ae, train, regressors, config.selection
+            )
             ae_seconds += simulation_report["seconds"]
             if de is not de_before:  # the state equations' parameters changed with the AE's
                 report["de"]["params"] = list(de.params)

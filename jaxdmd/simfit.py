@@ -167,10 +167,8 @@ def refit_simulation(
     ae: Equations,
     train: Sequence[Dataset],
     played_from: Sequence[Dataset] | None = None,
+    config: select.SelectionConfig | None = None,
     *,
-    tolerance: float = 0.25,
-    substeps: int = 1,
-    blowup: float = 1e3,
     max_steps: int = 200,
 ) -> tuple[Equations, Equations, dict[str, Any]]:
     """The state and algebraic equations' parameters fitted to how the model simulates the
@@ -178,7 +176,9 @@ def refit_simulation(
 
     ``played_from`` gives the played-in channels and the initial states (default ``train``;
     the pipeline passes the recordings with the states estimated by the model, whose first
-    sample is less noisy than the measured one). The residual is that of the states simulated
+    sample is less noisy than the measured one). ``config`` (default
+    :class:`jaxdmd.select.SelectionConfig`) gives the guard's ``tolerance`` and the
+    simulation's ``substeps`` and ``blowup``. The residual is that of the states simulated
     closed and with the measured algebraic variables played in, each scaled by the recording's
     range (NRMSE). Returns the equations (refitted or as given) and a report: ``kept``
     (``"refit"`` or why not), the mean left-out NRMSE of the refit and the in-sample NRMSE of
@@ -186,6 +186,7 @@ def refit_simulation(
     """
     import optimistix as optx
 
+    config = config or select.SelectionConfig()
     start = time.perf_counter()
     train = list(train)
     played_from = train if played_from is None else list(played_from)
@@ -203,7 +204,7 @@ def refit_simulation(
     t0 = np.asarray(train[0].t)
     if any(not np.array_equal(np.asarray(ds.t), t0) for ds in [*train, *played_from]):
         return done("given: the recordings do not share a time grid")
-    sim = _Simulator(de, ae, train, played_from, substeps, blowup)
+    sim = _Simulator(de, ae, train, played_from, config.substeps, config.blowup)
     theta0 = jnp.asarray(sim.theta0)
     before = sim.errors(theta0)
     if not np.all(np.isfinite(before)):
@@ -229,7 +230,7 @@ def refit_simulation(
     old = float(np.mean(before))
     new = float(np.mean(left_out))
     report["loro"] = {"given": old, "refit": new, "per_recording": left_out}
-    if not new * (1.0 + tolerance) < old:
+    if not new * (1.0 + config.tolerance) < old:
         return done("given: the refit does not simulate left-out recordings better")
     theta, steps = fit(theta0, jnp.ones(b, dtype=theta0.dtype))
     after = sim.errors(theta)
