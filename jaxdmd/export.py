@@ -6,12 +6,24 @@ standard model they map to:
 
 - ``classical`` -> **GENCLS** (H, D; in ANDES also x'_d, r_a, f_n): exact;
 - ``one-axis`` -> **GENSAL** (PSS/E only; ANDES has no GENSAL);
-- ``two-axis``, ``psat-5.1`` -> **GENROU**, with assumptions: a discovered model identifies no
-  sub-transient d axis, no leakage reactance and no saturation, and GENROU has one sub-transient
-  reactance for both axes (x''_d = x''_q). PSAT 5.1 puts x'_d in both stator lines (its x''_q is
-  x'_d), which GENROU cannot take (X'_d - X''_d is one of its divisors): the record sets
-  x''_d = x''_q = ``xpp_ratio`` x'_d (default 0.8) and a fast T''_d0 (default 0.03 s);
-  every assumed value is listed in the record's comment (:data:`ASSUMED`, ``assume=`` overrides).
+- ``psat-5.1`` -> **GENROU**, exact with saturation off: x''_d = x''_q = x'_d (PSAT 5.1's
+  stator puts x'_d on both axes; in ANDES's GENROU the d-axis damper then decouples, so the d
+  axis is PSAT's one-state axis and T''_d0 has no effect), and GENROU's T'_q0, T''_q0, x'_q
+  solved so that its q-axis operational reactance equals PSAT's (:func:`genrou_q_axis`; on the
+  39-bus data they differ from PSAT's by up to about 10 %: not the same quantities). The
+  PSS/E record carries the same numbers (ANDES's GENROU follows PSS/E's, via OpenIPSL; not
+  checked in PSS/E itself).
+  GENROU's and PSAT's states are then one linear system in other coordinates (e'_q and e''_d
+  are GENROU's e'_q and psi''_q, PSAT's e'_d a combination of GENROU's e'_d and psi_kq). Where
+  no such q axis exists (x'_q < x'_d, e.g. bus 30 of the 39-bus data, with x_l = 0; a
+  negative ``x_l`` given with ``assume=`` finds one) or x''_d is given, the q axis is written
+  as identified and the record says it approximates;
+- ``two-axis`` -> **GENROU** as PSAT 5.1 with an assumed fast T''_q0 (the two-axis model is
+  PSAT 5.1's limit T''_q0 -> 0, gamma_q -> 0): close, exact only in that limit.
+
+What a discovered model does not identify is assumed and listed in the record's comment
+(:data:`ASSUMED`, ``assume=`` overrides): T''_d0, leakage x_l (only GENROU's q-axis numbers
+depend on it), saturation (off), and for ``one-axis`` also T''_q0 and x''_d.
 
 A model outside these families (an equation with a term no family has, a state no family has)
 is refused with :class:`ExportError`; its exact form is the Python module
@@ -53,6 +65,7 @@ __all__ = [
     "andes_case",
     "dyr_record",
     "export",
+    "genrou_q_axis",
     "standard_machine",
     "write_module",
 ]
@@ -60,15 +73,16 @@ __all__ = [
 FORMATS = ("dyr", "andes", "py")
 
 ASSUMED: dict[str, float] = {
-    "T''_d0": 0.03,  # s, a fast d-axis sub-transient circuit (not in the discovered models)
-    "T''_q0": 0.05,  # s, GENSAL's q axis (one-axis: no q-axis dynamics identified)
-    "xpp_ratio": 0.8,  # x''_d = x''_q = xpp_ratio x'_d
+    "T''_d0": 0.03,  # s, GENROU/GENSAL's d-axis damper (no effect on GENROU when x''_d = x'_d)
+    "T''_q0": 0.05,  # s, GENSAL's q axis (one-axis), the fast q axis of a two-axis model
+    "xpp_ratio": 0.8,  # GENSAL (one-axis): x''_d = x''_q = xpp_ratio x'_d
     "x_l": 0.0,  # pu, leakage reactance (not identified)
     "S(1.0)": 0.0,  # saturation (not identified)
     "S(1.2)": 0.0,
 }
 """Values a discovered model does not identify and GENSAL/GENROU need (``assume=`` replaces
-any of them; ``x''_d`` may be given instead of ``xpp_ratio``)."""
+any of them; ``x''_d`` may be given instead of ``xpp_ratio``, and for GENROU instead of
+x''_d = x'_d, which makes the record approximate)."""
 
 
 class ExportError(ValueError):
@@ -202,29 +216,150 @@ def standard_machine(discovery: Any, assume: Mapping[str, float] | None = None) 
         need("x_q")
         assumed_value("T''_d0")
         assumed_value("T''_q0")
+        if "x''_d" in assume:
+            values["x''_d"] = float(assume["x''_d"])
+        else:
+            values["x''_d"] = assumed_value("xpp_ratio") * xdp
+        assumed.append("x''_d")
+        for name in ("x_l", "S(1.0)", "S(1.2)"):
+            assumed_value(name)
+        return StandardMachine(family, "GENSAL", values, tuple(assumed), tuple(notes), report)
+
+    # two-axis, psat-5.1 -> GENROU with x''_d = x''_q = x'_d and the q axis solved
+    need("T'_q0")
+    if family == "two-axis":
+        values["x_q"] = need("x'_q") + need("x_q - x'_q")
+        assumed_value("T''_q0")
+        notes.append(
+            "two-axis written as PSAT 5.1 with a fast T''_q0 (the two-axis model is its limit "
+            "T''_q0 -> 0): exact only in that limit"
+        )
+    else:  # psat-5.1
+        need("x_q")
+        need("x'_q")
+        need("T''_q0")
+    assumed_value("T''_d0")
+    exact_d = "x''_d" not in assume
+    if exact_d:
+        values["x''_d"] = xdp
+        notes.append(
+            "x''_d = x''_q = x'_d (PSAT 5.1's stator; GENROU's d-axis damper then decouples, "
+            "so its d axis is PSAT's and T''_d0 has no effect)"
+        )
     else:
-        need("T'_q0")
-        if family == "two-axis":
-            values["x_q"] = need("x'_q") + need("x_q - x'_q")
-            assumed_value("T''_q0")
-        else:  # psat-5.1
-            need("x_q")
-            need("x'_q")
-            need("T''_q0")
-            notes.append(
-                "PSAT 5.1 uses x'_d as its sub-transient q-axis reactance and has no d-axis "
-                "sub-transient circuit; GENROU needs x''_d < x'_d"
-            )
-        assumed_value("T''_d0")
-    if "x''_d" in assume:
         values["x''_d"] = float(assume["x''_d"])
-    else:
-        values["x''_d"] = assumed_value("xpp_ratio") * xdp
-    assumed.append("x''_d")
+        assumed.append("x''_d")
     for name in ("x_l", "S(1.0)", "S(1.2)"):
         assumed_value(name)
-    model = "GENSAL" if family == "one-axis" else "GENROU"
-    return StandardMachine(family, model, values, tuple(assumed), tuple(notes), report)
+    psat_q = {k: values[k] for k in ("x'_q", "T'_q0", "T''_q0")}
+    q = (
+        genrou_q_axis(
+            values["x_q"], psat_q["x'_q"], xdp, psat_q["T'_q0"], psat_q["T''_q0"], values["x_l"]
+        )
+        if exact_d
+        else None
+    )
+    if q is not None:
+        values.update({f"{k} (PSAT)": v for k, v in psat_q.items()})
+        values.update(q)
+        notes.append(
+            "GENROU's T'_q0, T''_q0, x'_q solved so that its q-axis operational reactance equals "
+            "PSAT 5.1's (PSAT's "
+            + ", ".join(f"{k} = {v:.6g}" for k, v in psat_q.items())
+            + "): with saturation off the record reproduces PSAT 5.1 exactly"
+        )
+    else:
+        why = (
+            "x''_d given"
+            if not exact_d
+            else f"no GENROU q axis with x_l = {values['x_l']:.6g} has PSAT 5.1's"
+        )
+        notes.append(
+            f"GENROU's q axis approximates PSAT 5.1's ({why}): T'_q0, T''_q0, x'_q written as "
+            "identified"
+        )
+    return StandardMachine(family, "GENROU", values, tuple(assumed), tuple(notes), report)
+
+
+def genrou_q_axis(
+    x_q: float, x_qp: float, x_dp: float, t_qp: float, t_qpp: float, x_l: float = 0.0
+) -> dict[str, float] | None:
+    """GENROU's ``T'_q0``, ``T''_q0``, ``x'_q`` (with ``x''_q = x'_d`` and leakage ``x_l``)
+    whose q axis is PSAT 5.1's, or None when none exists.
+
+    With the stator ``v_d + r_a i_d = e''_d + x'_d i_q`` of both models the q axis is one
+    linear map, ``v_d + r_a i_d = X_q(s) i_q``. PSAT 5.1's (its ``gamma_q`` makes it the
+    classical form, short-circuit time constants ``T'_q = T'_q0 x'_q / x_q``,
+    ``T''_q = T''_q0 x'_d / x'_q``)::
+
+        X_q(s) = x_q (1 + s T'_q)(1 + s T''_q) / ((1 + s T'_q0)(1 + s T''_q0))
+
+    ANDES's GENROU (``genrou.py``: states e'_d, psi''_q; ``x''_q = x'_d``; with its
+    ``T'_q0 = a``, ``T''_q0 = b``, ``x'_q = y``, ``A = x_q - y``, ``C = y - x'_d``,
+    ``B = y - x_l``, ``k = A C / B^2``, ``g = (x'_d - x_l) / B``)::
+
+        X_q(s) = [x_q + s (y a + b (x'_d (1 + k) + A g^2)) + s^2 x'_d a b]
+                 / [1 + s (a + b (1 + k)) + s^2 a b]
+
+    Equal high-frequency and static values; the rest is three equations in (a, b, y):
+    ``a b = T'_q0 T''_q0``, ``a + b (1 + k) = T'_q0 + T''_q0`` and
+    ``C a + A g^2 b = T'_q0 (x'_q + gamma_q - x'_d)`` (PSAT's values on the right). For a
+    given y the first two give a, b (a >= b); the third is solved for y on ``(x_l, x_q)``
+    (scan, then bisection; the root nearest PSAT's x'_q). None when there is no root, e.g.
+    bus 30 of the IEEE 39-bus data (x'_q < x'_d: PSAT's zeros do not interlace its poles) with
+    x_l = 0.
+    """
+    t1, t2 = float(t_qp), float(t_qpp)
+    if min(t1, t2, x_qp, x_dp) <= 0 or x_q <= x_l or x_dp <= x_l:
+        return None
+    gamma_q = (x_dp / x_qp) * (t2 / t1) * (x_q - x_qp)
+    rhs = t1 * (x_qp + gamma_q - x_dp)
+
+    def solve(y: float) -> tuple[float, float, float] | None:
+        a_, c_, b_ = x_q - y, y - x_dp, y - x_l
+        k = a_ * c_ / b_**2
+        disc = (t1 + t2) ** 2 - 4 * (1 + k) * t1 * t2
+        if 1 + k <= 0 or disc < 0:
+            return None
+        b = (t1 + t2 - math.sqrt(disc)) / (2 * (1 + k))
+        if b <= 0:
+            return None
+        a = t1 * t2 / b
+        g = (x_dp - x_l) / b_
+        return a, b, c_ * a + a_ * g * g * b - rhs
+
+    n = 2000
+    grid = [x_l + (x_q - x_l) * i / n for i in range(1, n)]
+    roots = []
+    prev: tuple[float, float] | None = None
+    for y in grid:
+        r = solve(y)
+        if r is None:
+            prev = None
+            continue
+        if r[2] == 0.0:
+            roots.append(y)
+        elif prev is not None and (prev[1] < 0) != (r[2] < 0):
+            lo, hi, f_lo = prev[0], y, prev[1]
+            for _ in range(200):
+                mid = (lo + hi) / 2
+                rm = solve(mid)
+                if rm is None:
+                    break
+                if (rm[2] < 0) == (f_lo < 0):
+                    lo, f_lo = mid, rm[2]
+                else:
+                    hi = mid
+                if hi - lo <= 1e-15 * max(1.0, abs(hi)):
+                    break
+            roots.append((lo + hi) / 2)
+        prev = (y, r[2])
+    found = [(y, solve(y)) for y in roots]
+    found = [(y, r) for y, r in found if r is not None and abs(r[2]) <= 1e-9 * max(1.0, abs(rhs))]
+    if not found:
+        return None
+    y, (a, b, _) = min(found, key=lambda yr: abs(yr[0] - x_qp))
+    return {"T'_q0": a, "T''_q0": b, "x'_q": y}
 
 
 # ----------------------------------------------------------------------------------------------
