@@ -157,6 +157,25 @@ def test_psat_51_maps_to_genrou_with_its_assumptions_stated(tmp_path):
     assert case["GENROU"][0]["xq2"] == case["GENROU"][0]["xd2"] == pytest.approx(XDP5, rel=1e-3)
 
 
+def test_two_axis_is_written_as_psat_51_with_a_fast_q_axis():
+    from jaxdmd.physical import PhysicalParameter, PhysicalReport
+
+    values = {"H": PH, "D": 0.0, "Omega_b": 2 * math.pi * 60, "r_a": RA, "x'_d": XDP5}
+    values |= {"T'_d0": TD0, "x_d - x'_d": XD - XDP5, "T'_q0": TQ0, "x'_q": XQP}
+    values |= {"x_q - x'_q": XQ - XQP}
+    report = PhysicalReport(
+        "two-axis", tuple(PhysicalParameter(k, v, None, "", "") for k, v in values.items()), ()
+    )
+    m = standard_machine(report)
+    assert (m.family, m.model) == ("two-axis", "GENROU")
+    assert "T''_q0" in m.assumed and m.params["x''_d"] == pytest.approx(XDP5)
+    q = genrou_q_axis(XQ, XQP, XDP5, TQ0, 0.05)  # PSAT 5.1 with the assumed T''_q0
+    assert q is not None
+    for k, v in q.items():
+        assert m.params[k] == pytest.approx(v)
+    assert "limit T''_q0 -> 0" in m.comment()
+
+
 # the IEEE 39-bus machines' q-axis data (x_q, x'_q, x'_d, T'_q0, T''_q0 = 0.04 s; bus 30 with
 # PSAT's T'_q0 = 0.8 s for the missing one)
 Q_AXES = {
