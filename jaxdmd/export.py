@@ -162,7 +162,11 @@ def standard_machine(discovery: Any, assume: Mapping[str, float] | None = None) 
     family = report.family
     values: dict[str, float] = {}
     assumed: list[str] = []
-    notes: list[str] = []
+    notes: list[str] = [
+        f"{p.source}: constant {p.value:.3g} ± {p.stderr:.2g} set aside (not written; {p.note})"
+        for p in report.parameters
+        if p.name == "constant term (set aside)" and p.stderr is not None
+    ]
 
     def need(name: str, *alternatives: str) -> float:
         if name in assume:

@@ -33,6 +33,11 @@ The state equations and what their coefficients identify (c_u: the fitted coeffi
   x'_d from the stator lines x_q and x'_q (the larger root of
   x'_q^2 - x'_q (x_q - a + c) + c x_q = 0, a the e'_d gain, c = x'_d T''_q0/T'_q0) follow.
 
+A constant term in d e'_d/dt, d e''_d/dt or d e''_q/dt (no family has one there) is set aside,
+and the equation counted as matching, when it is within ``SET_ASIDE_STDERRS`` (2) standard
+errors of zero; it is reported as ``constant term (set aside)``. Without standard errors it
+stays a term no family has.
+
 The stator lines, solved for the currents (det = r_a^2 + X_d X_q):
 
     i_d = [r_a (e_d - v_d) + X_q (e_q - v_q)] / det
@@ -86,6 +91,7 @@ from jaxdmd import lines as ln
 from jaxdmd.search import Equations, Problem, compiled_lines, sample_weights
 
 __all__ = [
+    "SET_ASIDE_STDERRS",
     "Coefficient",
     "EquationMatch",
     "NonLinearInParameters",
@@ -458,6 +464,13 @@ class PhysicalReport:
         return "\n".join(out) + "\n"
 
 
+SET_ASIDE_STDERRS = 2.0
+"""A constant term in a state equation whose family form has none (d e'_d/dt, d e''_d/dt,
+d e''_q/dt) is set aside, and the equation matched, when ``|c| <= SET_ASIDE_STDERRS * se(c)``:
+the fit does not tell it from zero (a two-sided test at about 5 %). It is reported as
+``constant term (set aside)``. Without standard errors (no problems given) it is never set
+aside."""
+
 _FAMILIES = (
     ("classical", ("delta", "omega")),
     ("one-axis", ("delta", "omega", "e_qp")),
@@ -540,21 +553,24 @@ def physical_parameters(
 
     params: list[PhysicalParameter] = []
 
-    def add(name, fn: Callable, unit, source, note=""):
+    def value_and_stderr(fn: Callable) -> tuple[float, float | None]:
         value = float(fn(theta_j))
         grad = np.asarray(jax.grad(lambda t: fn(t))(theta_j))
         used = grad != 0
         if not used.any():
-            se = 0.0
-        elif not known[used].all():
-            se = None
-        else:
-            sub = cov[np.ix_(used, used)]
-            se = float(np.sqrt(max(grad[used] @ sub @ grad[used], 0.0)))
-            se = None if not math.isfinite(se) else se
+            return value, 0.0
+        if not known[used].all():
+            return value, None
+        sub = cov[np.ix_(used, used)]
+        se = float(np.sqrt(max(grad[used] @ sub @ grad[used], 0.0)))
+        return value, (se if math.isfinite(se) else None)
+
+    def add(name, fn: Callable, unit, source, note=""):
+        value, se = value_and_stderr(fn)
         params.append(PhysicalParameter(name, value, se, unit, source, note))
 
     matches: list[EquationMatch] = []
+    set_aside: list[str] = []
     targets = de.contract.targets
     eq = {t: c for t, c in zip(targets, de_lines, strict=True)}
     ok: dict[str, bool] = {}
@@ -575,6 +591,21 @@ def physical_parameters(
                 note="the terminal-voltage form: v_q = e'_q - x'_d i_d substituted for i_d",
             )  # fmt: skip
             m = terminal if terminal.matched else m
+        if not m.matched and m.unmatched == ("1",) and not m.missing:
+            # a constant no family has there: set aside when zero is within its error
+            value, se = value_and_stderr(eq[t]["1"])
+            if se is not None and abs(value) <= SET_ASIDE_STDERRS * se:
+                why = (
+                    f"constant term {value:.3g} ± {se:.2g} set aside: within "
+                    f"{SET_ASIDE_STDERRS:g} standard errors of zero"
+                )
+                m = EquationMatch(src, m.terms, True, (), (), why)
+                params.append(
+                    PhysicalParameter(
+                        "constant term (set aside)", value, se, "1/s", src, why.split(": ")[1]
+                    )
+                )
+                set_aside.append(f"{src}: {why}")
         matches.append(m)
         ok[t] = m.matched
 
@@ -687,7 +718,7 @@ def physical_parameters(
     )
 
     # stator lines
-    notes = [*(f"parameter inside a function: `{n}`" for n in de_notes + ae_notes)]
+    notes = [*(f"parameter inside a function: `{n}`" for n in de_notes + ae_notes), *set_aside]
     x_d_fn = None
     if ae is not None and family is not None:
         e_d = {"psat-5.1": "e_dpp", "two-axis": "e_dp"}.get(family)

@@ -514,3 +514,40 @@ def test_correlated_standard_errors_match_the_scatter_of_integral_form_fits():
     assert np.all(scatter / np.mean(plain, axis=0) > 1.4)  # the plain errors are too small
     ratio = scatter / np.mean(correlated, axis=0)
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+
+
+@pytest.mark.parametrize("c_true", [0.0, 1.0])
+def test_a_constant_within_two_standard_errors_of_zero_is_set_aside(c_true):
+    """d e''_d/dt with a fitted constant next to its PSAT terms: with zero in the data (the
+    fitted constant is noise) the equation matches PSAT 5.1 and the constant is reported set
+    aside; with a real constant (1.0/s, many errors away) it stays a term no family has."""
+    de_c, ae_c = _contracts()
+    src, params = _de_source()
+    src = src.replace("d_e_dpp = p[8]", "d_e_dpp = p[11] + p[8]")
+    data = _data()
+    truth = _equations(de_c, src, [*params[:11], c_true])
+    de_problem = _problem(truth, data, noise=0.01)
+    y = np.asarray(de_problem.targets[4])
+    x = np.stack([np.ones_like(y), data["e_dp"], data["e_dpp"], data["i_q"]], axis=1)
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)  # the line refitted, as the search would
+    fitted = [*params[:8], *coef[1:], coef[0]]
+    de = _equations(de_c, src, fitted)
+    ae = _equations(ae_c, AE_SOURCE, AE_PARAMS)
+    ae_problem = _problem(ae, data, noise=0.01)
+    rep = physical_parameters(de, ae, de_problem, ae_problem)
+    aside = rep.get("constant term (set aside)")
+    e_dpp = next(e for e in rep.equations if e.equation == "de_dpp/dt")
+    if c_true == 0.0:
+        assert rep.family == "psat-5.1" and e_dpp.matched
+        assert aside is not None and aside.value == pytest.approx(coef[0])
+        assert abs(aside.value) <= 2 * aside.stderr
+        assert "set aside" in e_dpp.note and any("set aside" in n for n in rep.notes)
+        _close(rep, "T''_q0", TQ02)
+    else:
+        assert rep.family == "two-axis" and not e_dpp.matched and aside is None
+    # without the data there is no standard error: never set aside
+    assert physical_parameters(de, ae).family == "two-axis"
+    if c_true == 0.0:  # the export says what it left out
+        from jaxdmd.export import standard_machine
+
+        assert "de_dpp/dt: constant" in standard_machine(rep).comment()
