@@ -52,6 +52,8 @@ from jaxdmd.select import (
     SelectionConfig,
     inclusion_frequency,
     pool,
+    refit_lines,
+    reweight_by_recording,
     select_algebraic,
     select_by_simulation,
     simulation_nrmse,
@@ -653,11 +655,16 @@ def discover(
             floor=1e-5 if fine else 1e-4,
         )  # fmt: skip
         ae_seconds += states_seconds
+        # every algebraic equation's samples weighted by its error variance in their recording
+        # (estimated from the loop's choice): what follows fits on the reweighted problem
+        weighted, recording_weights = reweight_by_recording(ae_state, ae)
+        if recording_weights:
+            ae = refit_lines(weighted, ae)
         ae_selection = None
         if config.selection is not None:
             start = time.perf_counter()
             ae, ae_selection = select_algebraic(
-                ae_state, ae, de, train, config.selection, played_from=regressors
+                weighted, ae, de, train, config.selection, played_from=regressors
             )
             ae_selection["seconds"] = time.perf_counter() - start
             ae_seconds += ae_selection["seconds"]
@@ -668,8 +675,10 @@ def discover(
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:
             start = time.perf_counter()
-            refitted, bias_report = refit_bias_compensated(ae, estimates)
-            ae = judge.better(ae, refitted, bias_report, de=de)  # type: ignore[arg-type]
+            compensated, bias_report = refit_bias_compensated(
+                ae, estimates, weighted.problem.weights if recording_weights else None
+            )
+            ae = judge.better(ae, compensated, bias_report, de=de)  # type: ignore[arg-type]
             ae_seconds += time.perf_counter() - start
         if fine and config.ae_joint:
             start = time.perf_counter()
@@ -696,6 +705,8 @@ def discover(
                 report["de"]["equations"] = de.readable()
                 report["de"]["simulation_refit"] = "refitted with the AE equations (see ae)"
         summary = _loop_summary(ae_state, ae, ae_seconds)
+        if recording_weights:
+            summary["recording_weights"] = recording_weights
         if ae_selection is not None:
             summary["selection"] = ae_selection
         if bias_report is not None:  # "params"/"equations" are then the refitted ones

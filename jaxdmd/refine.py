@@ -108,7 +108,9 @@ def model_states(de: Equations, datasets: Sequence[Dataset]) -> list[StateEstima
 
 
 def refit_bias_compensated(
-    equations: Equations, estimates: Sequence[StateEstimate]
+    equations: Equations,
+    estimates: Sequence[StateEstimate],
+    weights: np.ndarray | None = None,
 ) -> tuple[Equations, dict[str, str]]:
     """The AE loop's equations refitted by bias-compensated least squares.
 
@@ -120,14 +122,20 @@ def refit_bias_compensated(
     (first order); each equation that is affine in its parameters is refitted as
     p = (G'G - C)^-1 G'y. The other channels are taken as measured without noise. An equation
     that is not affine in p, or whose corrected matrix is not positive definite, keeps its
-    parameters. Returns the equations and, per target, what was done.
+    parameters. ``weights`` (``[targets, N]``, the recordings concatenated in the order of
+    ``estimates``) weight the samples (:func:`jaxdmd.select.recording_weights`); default 1.
+    Returns the equations and, per target, what was done.
     """
 
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
     report: dict[str, str] = {}
-    for target, line, mapping in zip(contract.targets, lines, mappings, strict=True):
+    sizes = [len(np.asarray(e.dataset.t)) for e in estimates]
+    for j, (target, line, mapping) in enumerate(
+        zip(contract.targets, lines, mappings, strict=True)
+    ):
+        w_all = np.ones(sum(sizes)) if weights is None else np.asarray(weights[j], dtype=float)
         skeleton = search._line_skeleton(contract, line)
         names = tuple(skeleton.arguments)
         if not names:
@@ -145,8 +153,9 @@ def refit_bias_compensated(
         gram = correction = 0.0
         cross = 0.0
         affine = True
-        for estimate in estimates:
+        for estimate, start in zip(estimates, np.cumsum([0, *sizes[:-1]]), strict=True):
             ds = estimate.dataset
+            w = w_all[start : start + len(np.asarray(ds.t))]
             args = np.stack([np.asarray(ds[a], dtype=float) for a in names], axis=1)
             zero, one = jnp.zeros(n_p), jnp.ones(n_p)
             g = np.asarray(features(args, zero))
@@ -159,9 +168,14 @@ def refit_bias_compensated(
             jac = np.asarray(sensitivity(args, zero))[:, :, noisy]  # [n, P, A] d feature/d state
             cov = estimate.covariance[:, rows][:, :, rows]  # [n, A, A]
             y = np.asarray(ds[target], dtype=float) - offset
-            gram = gram + g.T @ g
-            cross = cross + g.T @ y
-            correction = correction + np.einsum("npa,nab,nqb->pq", jac, cov, jac)
+            if weights is None:
+                gram = gram + g.T @ g
+                cross = cross + g.T @ y
+                correction = correction + np.einsum("npa,nab,nqb->pq", jac, cov, jac)
+            else:
+                gram = gram + g.T @ (w[:, None] * g)
+                cross = cross + g.T @ (w * y)
+                correction = correction + np.einsum("n,npa,nab,nqb->pq", w, jac, cov, jac)
         if not affine:
             report[target] = "kept: not affine in its parameters"
             continue

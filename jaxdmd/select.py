@@ -45,6 +45,7 @@ import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -58,6 +59,8 @@ from jaxdmd.search import (
     compiled_lines,
     fit_problem,
     fold_fits,
+    replace_state,
+    sample_weights,
 )
 from jaxdmd.skeleton import Skeleton, SkeletonError
 
@@ -828,6 +831,67 @@ def select_algebraic(
         report["changed"] = []
         return fit_choice, report
     return chosen, report
+
+
+def reweight_by_recording(
+    state: SearchState, equations: Equations
+) -> tuple[SearchState, dict[str, list[float]]]:
+    """The loop's state with every equation's samples weighted by the inverse of its error
+    variance in their recording (feasible generalised least squares by recording).
+
+    Least squares weights every sample alike, as if each recording were as noisy as the
+    others. An algebraic equation's error is mostly the noise of its regressors passed through
+    it (a stator current amplifies the noise of the rotor and terminal angles by 1/x'_d), and
+    that noise scales with each recording's range: a recording whose machine slipped poles
+    carries angles whose noise is tens of times the others', and its squared errors dominate
+    the fit (coefficients shrink, stand-in terms soak up the noise). The error variance of
+    equation ``j`` in recording ``r`` is estimated from the residuals of ``equations`` (the
+    loop's fit choice), and each sample is weighted by its inverse, normalised to mean 1 per
+    equation. With one recording, or where a variance is not positive and finite, the weights
+    stay. Returns the state (its problem's ``weights`` per equation, ``[targets, N]``) and, per
+    target, the weight of each recording's samples.
+    """
+    problem = state.problem
+    if problem.groups is None or problem.operator is not None:
+        return state, {}
+    groups = np.asarray(problem.groups)
+    labels = np.unique(groups)
+    if len(labels) < 2:
+        return state, {}
+    try:
+        skeleton = _compile(equations.source, state.contract)
+    except SkeletonError:
+        return state, {}
+    names = skeleton.arguments
+    pred = skeleton({n: problem.variables[n] for n in names}, np.asarray(equations.params))
+    targets = np.asarray(problem.targets, dtype=float)
+    weights = np.stack([sample_weights(problem, j) for j in range(len(targets))]).copy()
+    report: dict[str, list[float]] = {}
+    for j, name in enumerate(problem.target_names):
+        residual = np.asarray(pred[j], dtype=float) - targets[j]
+        variance = np.array([
+            np.sum(weights[j, groups == g] * residual[groups == g] ** 2)
+            / np.sum(weights[j, groups == g])
+            for g in labels
+        ])  # fmt: skip
+        if not np.all(np.isfinite(variance) & (variance > 0)):
+            continue
+        scale = 1.0 / variance[np.searchsorted(labels, groups)]
+        w = weights[j] * scale
+        w = w / np.mean(w)
+        report[name] = [float(np.mean(w[groups == g])) for g in labels]
+        weights[j] = w
+    if not report:
+        return state, {}
+    problem = eqx.tree_at(lambda p: p.weights, problem, jax.numpy.asarray(weights),
+                          is_leaf=lambda x: x is None)
+    return replace_state(state, problem=problem), report
+
+
+def refit_lines(state: SearchState, equations: Equations) -> Equations:
+    """``equations`` (their lines) fitted again on ``state``'s problem (e.g. reweighted)."""
+    lines, _ = ln.split_lines(equations.source)
+    return _assemble(state, lines) or equations
 
 
 def _closed_loro(
