@@ -52,11 +52,10 @@ from jaxdmd.select import (
     SelectionConfig,
     inclusion_frequency,
     pool,
-    refit_lines,
-    reweight_by_recording,
     select_algebraic,
     select_by_simulation,
     simulation_nrmse,
+    weighted_by_recording,
 )
 from jaxdmd.simfit import refit_simulation
 
@@ -657,9 +656,7 @@ def discover(
         ae_seconds += states_seconds
         # every algebraic equation's samples weighted by its error variance in their recording
         # (estimated from the loop's choice): what follows fits on the reweighted problem
-        weighted, recording_weights = reweight_by_recording(ae_state, ae)
-        if recording_weights:
-            ae = refit_lines(weighted, ae)
+        weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
         ae_selection = None
         if config.selection is not None:
             start = time.perf_counter()

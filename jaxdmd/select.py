@@ -833,65 +833,76 @@ def select_algebraic(
     return chosen, report
 
 
-def reweight_by_recording(
-    state: SearchState, equations: Equations
-) -> tuple[SearchState, dict[str, list[float]]]:
-    """The loop's state with every equation's samples weighted by the inverse of its error
-    variance in their recording (feasible generalised least squares by recording).
+def weighted_by_recording(
+    state: SearchState, equations: Equations, *, iterations: int = 10, settle: float = 0.01
+) -> tuple[SearchState, Equations, dict[str, object]]:
+    """``equations`` refitted with every equation's samples weighted by the inverse of its
+    error variance in their recording (iterated feasible generalised least squares).
 
     Least squares weights every sample alike, as if each recording were as noisy as the
     others. An algebraic equation's error is mostly the noise of its regressors passed through
     it (a stator current amplifies the noise of the rotor and terminal angles by 1/x'_d), and
     that noise scales with each recording's range: a recording whose machine slipped poles
     carries angles whose noise is tens of times the others', and its squared errors dominate
-    the fit (coefficients shrink, stand-in terms soak up the noise). The error variance of
-    equation ``j`` in recording ``r`` is estimated from the residuals of ``equations`` (the
-    loop's fit choice), and each sample is weighted by its inverse, normalised to mean 1 per
-    equation. With one recording, or where a variance is not positive and finite, the weights
-    stay. Returns the state (its problem's ``weights`` per equation, ``[targets, N]``) and, per
-    target, the weight of each recording's samples.
+    the fit (coefficients shrink, stand-in terms soak up the noise). The error variance of each
+    equation in each recording is estimated from the residuals of the current fit, the samples
+    weighted by its inverse (normalised to mean 1 per equation), the equations refitted, and so
+    on until no recording's weight changes by more than ``settle`` (relative) or after
+    ``iterations`` refits: the maximum-likelihood fit with one error variance per equation and
+    recording. With one recording, or where a variance is not positive and finite, nothing is
+    reweighted. Returns the state whose problem carries the weights (``[targets, N]``; what
+    follows fits on it), the refitted equations and a report: per target the weight of each
+    recording's samples, and the refits made.
     """
     problem = state.problem
     if problem.groups is None or problem.operator is not None:
-        return state, {}
+        return state, equations, {}
     groups = np.asarray(problem.groups)
     labels = np.unique(groups)
     if len(labels) < 2:
-        return state, {}
-    try:
-        skeleton = _compile(equations.source, state.contract)
-    except SkeletonError:
-        return state, {}
-    names = skeleton.arguments
-    pred = skeleton({n: problem.variables[n] for n in names}, np.asarray(equations.params))
+        return state, equations, {}
+    index = np.searchsorted(labels, groups)
     targets = np.asarray(problem.targets, dtype=float)
-    weights = np.stack([sample_weights(problem, j) for j in range(len(targets))]).copy()
-    report: dict[str, list[float]] = {}
-    for j, name in enumerate(problem.target_names):
-        residual = np.asarray(pred[j], dtype=float) - targets[j]
-        variance = np.array([
-            np.sum(weights[j, groups == g] * residual[groups == g] ** 2)
-            / np.sum(weights[j, groups == g])
-            for g in labels
-        ])  # fmt: skip
-        if not np.all(np.isfinite(variance) & (variance > 0)):
-            continue
-        scale = 1.0 / variance[np.searchsorted(labels, groups)]
-        w = weights[j] * scale
-        w = w / np.mean(w)
-        report[name] = [float(np.mean(w[groups == g])) for g in labels]
-        weights[j] = w
-    if not report:
-        return state, {}
-    problem = eqx.tree_at(lambda p: p.weights, problem, jax.numpy.asarray(weights),
-                          is_leaf=lambda x: x is None)
-    return replace_state(state, problem=problem), report
-
-
-def refit_lines(state: SearchState, equations: Equations) -> Equations:
-    """``equations`` (their lines) fitted again on ``state``'s problem (e.g. reweighted)."""
+    base = np.stack([sample_weights(problem, j) for j in range(len(targets))])
     lines, _ = ln.split_lines(equations.source)
-    return _assemble(state, lines) or equations
+    current, previous = equations, None
+    weighted = state
+    per_recording: dict[str, list[float]] = {}
+    refits = 0
+    for _ in range(iterations):
+        try:
+            skeleton = _compile(current.source, state.contract)
+        except SkeletonError:
+            break
+        variables = {n: problem.variables[n] for n in skeleton.arguments}
+        pred = skeleton(variables, np.asarray(current.params))
+        weights = base.copy()
+        shares = np.ones((len(targets), len(labels)))
+        for j in range(len(targets)):
+            r2 = (np.asarray(pred[j], dtype=float) - targets[j]) ** 2
+            variance = np.bincount(index, base[j] * r2) / np.bincount(index, base[j])
+            if not np.all(np.isfinite(variance) & (variance > 0)):
+                continue
+            w = base[j] / variance[index]
+            weights[j] = w / np.mean(w)
+            shares[j] = np.bincount(index, weights[j]) / np.bincount(index)
+        if previous is not None and np.all(np.abs(shares / previous - 1) <= settle):
+            break
+        previous = shares
+        problem_w = eqx.tree_at(
+            lambda p: p.weights, problem, jax.numpy.asarray(weights), is_leaf=lambda x: x is None
+        )
+        trial = replace_state(state, problem=problem_w)
+        refit = _assemble(trial, lines)
+        if refit is None:
+            break
+        weighted, current, refits = trial, refit, refits + 1
+        per_recording = {
+            name: [float(x) for x in shares[j]] for j, name in enumerate(problem.target_names)
+        }
+    if not refits:
+        return state, equations, {}
+    return weighted, current, {"per_recording": per_recording, "refits": refits}
 
 
 def _closed_loro(

@@ -3,6 +3,8 @@ with the diffrax rollout, and a hidden slow term that derivative errors cannot s
 
 from __future__ import annotations
 
+import ast
+
 import jax
 import numpy as np
 import pytest
@@ -189,3 +191,41 @@ def test_an_algebraic_stand_in_that_wins_on_fit_loses_in_simulation():
     assert report["dae_nrmse"] < 0.1 * report["dae_nrmse_fit_choice"]
     low, high = sorted(chosen.params)  # the gains of theta and x: -20 and 20
     assert abs(low + 20.0) < 1.0 and abs(high - 20.0) < 1.0
+
+
+def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
+    """y = 20 (x - theta) on four recordings; in one, x is measured with a hundred times the
+    others' noise (its machine swung far, and the noise is a share of the range). Least squares
+    weighs that recording's errors like the others', and the errors in x shrink the gain to
+    about half (errors in variables); weighted by each recording's error variance, refitted
+    until the weights settle, the fit recovers the gain, and the noisy recording carries
+    almost no weight."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.select import _assemble, weighted_by_recording
+
+    recordings = tracking(4, 0.002, 20.0, 1001, (0.2, 0.05, 0.3, 0.1))
+    ds = recordings[2]
+    x = np.asarray(ds["x"])
+    noisy = x + 0.2 * np.ptp(x) * np.random.default_rng(7).normal(size=x.shape)
+    channels = {n: (noisy if n == "x" else np.asarray(ds[n])) for n in ds.names}
+    recordings[2] = Dataset.create(ds.t, channels, {n: ds.role(n) for n in ds.names})
+    recordings = [r.with_estimated_derivatives() for r in recordings]
+    _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
+    problem, ae_contract = ae_problem(recordings, contract)
+    state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
+    line = ln.Line(ast.parse("p[0] * x + p[1] * theta", mode="eval").body, 2)
+    plain = _assemble(state, [line])
+    assert plain is not None
+    assert abs(plain.params[0] - 20.0) > 5.0, plain.params  # the premise: the gain shrinks
+    weighted, fitted, report = weighted_by_recording(state, plain)
+    shares = report["per_recording"]["y"]
+    assert shares[2] < 1e-3 and min(shares[k] for k in (0, 1, 3)) > 0.5, shares
+    assert 2 <= report["refits"] <= 10
+    assert abs(fitted.params[0] - 20.0) < 0.05 and abs(fitted.params[1] + 20.0) < 0.05
+    # what follows fits on the weighted problem: the same lines give the same parameters
+    again = _assemble(weighted, [line])
+    assert again is not None and np.allclose(again.params, fitted.params)
+    # one recording: nothing to weight
+    single = search.init(ae_problem(recordings[:1], contract)[0], ae_contract,
+                         jax.random.key(0), search.SearchConfig())  # fmt: skip
+    assert weighted_by_recording(single, plain)[2] == {}
