@@ -617,6 +617,15 @@ def test_bias_compensated_refit_undoes_the_attenuation_of_a_noisy_state():
     assert refit.params[0] == pytest.approx(2.0, rel=0.01)
     assert abs(refit.params[0] - 2.0) < abs(plain[0] - 2.0) / 4
     assert refit.params[1] == pytest.approx(1.0, rel=0.05)  # u is clean: no correction there
+    # sample weights: ones change nothing; the second recording alone recovers the gain too
+    n = len(t)
+    refit_ones, _ = refit_bias_compensated(start, estimates, np.ones((1, 2 * n)))
+    assert np.allclose(refit_ones.params, refit.params, rtol=1e-10, atol=1e-12)
+    second = np.concatenate([np.zeros(n), 2.0 * np.ones(n)])[None]
+    alone, _ = refit_bias_compensated(start, estimates, second)
+    own, _ = refit_bias_compensated(start, estimates[1:])
+    assert np.allclose(alone.params, own.params, rtol=1e-9)
+    assert alone.params[0] == pytest.approx(2.0, rel=0.02)
     # an equation that is not affine in its parameters keeps them
     curved = "def algebraic(x, u, p):\n    y_ = p[0] * x + u * p[1] * p[1]\n    return y_\n"
     kept, report = refit_bias_compensated(
