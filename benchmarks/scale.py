@@ -12,7 +12,11 @@ state's range added), then, each stage timed in a fresh subprocess per size:
                    default DE problem; its matched operator and noise weights are computed once
                    per distinct grid and events, here once: the four share them);
   fit_seed         ``jaxdmd.search.init``: the linear seed skeleton fitted on that problem (the
-                   first search round without a model).
+                   first search round without a model), with the default discovery's DE search
+                   settings (``DiscoveryConfig().de_search()``);
+  search_round     one round of that search as the default discovery runs it: the offline
+                   proposer built on the problem (``OfflineFactory``), ``search.prompts``, its
+                   answers, ``search.step`` (every candidate fitted).
 
 Two ways to make n samples from the 10 s runs (``--mode``):
 
@@ -47,7 +51,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-STAGES = ("derivatives", "matched_filter", "estimator_gains", "de_problem", "fit_seed")
+STAGES = (
+    "derivatives",
+    "matched_filter",
+    "estimator_gains",
+    "de_problem",
+    "fit_seed",
+    "search_round",
+)
 
 
 def source(cache: Path) -> Path:
@@ -125,9 +136,10 @@ def child(cache: Path, n: int, mode: str) -> dict:
     import jax
 
     import jaxdmd  # noqa: F401
+    from jaxdmd import search
     from jaxdmd.data import matched_filter
+    from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory
     from jaxdmd.problems import de_problem, estimator_gains
-    from jaxdmd.search import init
 
     datasets = recordings(cache, n, mode)
     figures: dict[str, dict] = {}
@@ -153,8 +165,16 @@ def child(cache: Path, n: int, mode: str) -> dict:
     problem, contract = stage(
         "de_problem", lambda: de_problem(datasets, matched=True, weighted=True)
     )
-    state = stage("fit_seed", lambda: init(problem, contract, jax.random.key(0)))
+    config = DiscoveryConfig().de_search()
+    state = stage("fit_seed", lambda: search.init(problem, contract, jax.random.key(0), config))
     scores = [e.score for island in state.archive.islands for e in island.entries]
+
+    def one_round():
+        proposer = OfflineFactory()(problem, "DE")
+        after, requests = search.prompts(state)
+        return search.step(after, proposer.propose(requests))
+
+    _, report = stage("search_round", one_round)
     return {
         "n": n,
         "mode": mode,
@@ -162,6 +182,8 @@ def child(cache: Path, n: int, mode: str) -> dict:
         "events_per_recording": len(datasets[0].events),
         "band_width": int(index.shape[1]),
         "seed_score": float(max(scores)) if scores else None,
+        "round_best_score": float(report.best_score),
+        "round_candidates": int(report.n_valid),
         "stages": figures,
     }
 

@@ -682,6 +682,29 @@ _EMPTY = interp.Program(
 )  # fmt: skip
 
 
+# elements of the predictions ``[probes, K, N]`` that :func:`_by_probes` evaluates at a time
+PROBE_CHUNK = 1 << 22
+
+
+def _by_probes(
+    evaluate: Callable[[np.ndarray, np.ndarray], None], n_outputs: int, n: int
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``values_at(probes [B, P]) -> [B, K, N]`` for :func:`_linear_fit` from ``evaluate(probes,
+    out)``, which writes the predictions at a few probes into ``out``: the probes go a few at a
+    time (about :data:`PROBE_CHUNK` elements), so that the evaluation's temporaries (registers,
+    the operator's product) stay that small. Every probe's predictions are computed
+    element-wise, by the same operations as with all probes at once (same to the last bit)."""
+
+    def values_at(probes: np.ndarray) -> np.ndarray:
+        out = np.empty((len(probes), n_outputs, n))
+        step = max(1, PROBE_CHUNK // max(1, n_outputs * n))
+        for start in range(0, len(probes), step):
+            evaluate(probes[start : start + step], out[start : start + step])
+        return out
+
+    return values_at
+
+
 def _affine_groups(
     program: interp.Program,
     rows: np.ndarray,
@@ -705,7 +728,12 @@ def _affine_groups(
             continue
         group = lm.OutputGroup(program.parts, outs, rows, targets, scale, band)
         n_p = len(group.cols)
-        fitted = _linear_fit(group.predict, n_p, seed, targets[outs], scale[outs], config)
+
+        def predict(probes: np.ndarray, out: np.ndarray, group: lm.OutputGroup = group) -> None:
+            out[...] = group.predict(probes)
+
+        values_at = _by_probes(predict, len(outs), targets.shape[1])
+        fitted = _linear_fit(values_at, n_p, seed, targets[outs], scale[outs], config)
         if fitted is not None:
             found.append((outs, group.cols, fitted.params, fitted.losses))
     return found
@@ -753,25 +781,50 @@ def _linear_fit(
         return None
     if not np.all(np.isfinite(values)):
         return None
-    b, a = values[0], values[1 : n_params + 1] - values[0]  # a: [P, K, N]
+    if values.base is not None or not values.flags.writeable:
+        values = values.copy()  # the differences are taken in place below
+    # a = values[1:P+1] - values[0], in place ([P, K, N]: the largest array of the fit)
+    b, a = values[0], np.subtract(values[1 : n_params + 1], values[0], out=values[1 : n_params + 1])
+    abs_r_a = _abs_tensordot(a)
     for r, v in zip(probes[n_params + 1 :], values[n_params + 1 :], strict=True):
         affine = b + np.tensordot(r, a, axes=1)
-        size = np.abs(b) + np.tensordot(np.abs(r), np.abs(a), axes=1) + np.abs(v)
+        size = np.abs(b) + abs_r_a(np.abs(r)) + np.abs(v)
         if np.any(np.abs(v - affine) > 1e-9 * (size + 1e-300)):
             return None
-    sa, y = scale[None] * a, scale * (targets - b)  # [P, K, N], [K, N]
-    dep = np.any(sa != 0, axis=2).T
+    y = scale * (targets - b)  # [K, N]
+    # which outputs each parameter moves (scale * a != 0), one parameter at a time
+    dep = np.array([np.any(scale * a_j != 0, axis=1) for a_j in a]).reshape(n_params, -1).T
     p = np.zeros(n_params)  # a parameter that changes nothing: 0, the minimum-norm choice
     for outs in lm.output_groups(dep):  # outputs sharing no parameter: separate problems
         cols = np.flatnonzero(dep[outs].any(axis=0))
         if len(cols):
-            m = sa[cols][:, outs].reshape(len(cols), -1).T  # [K_g * N, P_g]
+            sa = a[np.ix_(cols, outs)]  # [P_g, K_g, N], a copy
+            sa *= scale[outs][None]
+            m = sa.reshape(len(cols), -1).T  # [K_g * N, P_g]
             norms = np.linalg.norm(m, axis=0)
-            q, *_ = np.linalg.lstsq(m / norms, y[outs].reshape(-1), rcond=None)
+            q, *_ = np.linalg.lstsq(np.divide(m, norms, out=m), y[outs].reshape(-1), rcond=None)
+            del sa, m
             p[cols] = q / norms
     resid = scale * (b + np.tensordot(p, a, axes=1) - targets)
     losses = np.sum(resid**2, axis=1)
     return _result(n_params, p, losses, losses[None], config)
+
+
+def _abs_tensordot(a: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """``r -> tensordot(r, |a|, axes=1)`` for ``r >= 0`` without the ``|a|`` of all of ``a``
+    at once (``[P, K, N]``): over slices of about :data:`PROBE_CHUNK` elements of the last two
+    axes. Only the affinity test's tolerance uses it (the sums may differ from one product of
+    the whole in the last bits, which moves the 1e-9 tolerance by as little)."""
+    flat = a.reshape(a.shape[0], -1)
+    step = max(1, PROBE_CHUNK // max(1, a.shape[0]))
+
+    def product(r: np.ndarray) -> np.ndarray:
+        out = np.empty(flat.shape[1])
+        for start in range(0, flat.shape[1], step):
+            out[start : start + step] = r @ np.abs(flat[:, start : start + step])
+        return out.reshape(a.shape[1:])
+
+    return product
 
 
 def _dropped(skeleton: SkeletonLike, n_outputs: int, error: str) -> FitResult:
@@ -979,12 +1032,12 @@ def fit_batch(
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:
 
-            def numpy_values(probes: np.ndarray) -> np.ndarray:
+            def numpy_values(probes: np.ndarray, out: np.ndarray) -> None:
                 rows = list(feature_values(i))
                 values = interp.evaluate_numpy(programs[i], rows, probes, n)
-                return values if band is None else lm.apply_band(band, values)
+                out[...] = values if band is None else lm.apply_band(band, values, out=values)
 
-            return numpy_values
+            return _by_probes(numpy_values, n_outputs, n)
         model = models[i]
         return lambda probes: jax.vmap(lambda q: _predict(model, data, q, n_outputs))(
             jnp.asarray(probes)

@@ -535,7 +535,7 @@ def evaluate_numpy(
     with np.errstate(all="ignore"):
         values, _ = run_numpy(program, rows, p, tangents=False)  # type: ignore[arg-type]
         outs = [np.broadcast_to(v, (p.shape[0], n)) for v in values]
-    return np.stack(outs, axis=1).astype(np.float64)
+    return np.stack(outs, axis=1).astype(np.float64, copy=False)
 
 
 def run_numpy(

@@ -45,10 +45,28 @@ def band_matrix(index: Any, weight: Any) -> Any:
     return scipy.sparse.csr_matrix((weight.ravel(), index.ravel(), indptr), shape=(n, n))
 
 
-def apply_band(band: Any, x: np.ndarray) -> np.ndarray:
-    """The sparse matrix ``band`` (:func:`band_matrix`) along the last axis of ``x``."""
+# elements of the rows that :func:`apply_band` sends through the sparse product at a time
+BAND_CHUNK = 1 << 22
+
+
+def apply_band(band: Any, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The sparse matrix ``band`` (:func:`band_matrix`) along the last axis of ``x``.
+
+    The rows of ``x`` (all axes but the last) go through the product a few at a time (about
+    :data:`BAND_CHUNK` elements), so the temporaries (SciPy's C-ordered copy of the operand, the
+    product, its transpose) stay that small whatever the size of ``x``; each row's result is the
+    same to the last bit as in one product of all rows (SciPy's CSR product runs every column
+    of its operand through the same sum, in the same order). ``out`` (``x`` itself allowed)
+    receives the result; by default a new array.
+    """
     flat = x.reshape(-1, x.shape[-1])
-    return np.ascontiguousarray((band @ flat.T).T).reshape(x.shape)
+    if out is None:
+        out = np.empty(x.shape, dtype=np.result_type(x.dtype, band.dtype))
+    result = out.reshape(flat.shape)
+    rows = max(1, BAND_CHUNK // max(1, flat.shape[1]))
+    for start in range(0, flat.shape[0], rows):
+        result[start : start + rows] = (band @ flat[start : start + rows].T).T
+    return out
 
 
 def output_groups(dep: np.ndarray) -> list[list[int]]:

@@ -212,3 +212,49 @@ def test_operator_matched_fit_removes_the_smoothing_bias():
     )
     assert abs(matched.params[0] - 2.5) < 1e-9 and matched.losses[0] < 1e-20
     assert abs(plain.params[0] - 2.5) > 0.1  # the bias the operator removes
+
+
+def test_chunked_evaluation_is_bit_identical(monkeypatch) -> None:
+    """The host fit evaluates the linear shortcut's probes and the operator's product a few rows
+    at a time (memory, issue #15): any chunk size gives the same numbers to the last bit."""
+    from jaxdmd import fit, lm
+    from jaxdmd.fit import Operator
+
+    data = _data(3)
+    rng = np.random.default_rng(4)
+    width = 9
+    index = np.clip(np.arange(N)[:, None] + np.arange(width)[None, :] - width // 2, 0, N - 1)
+    weight = rng.normal(size=(N, width))
+    targets = np.stack([rng.normal(size=N), 1 + 0.1 * rng.normal(size=N)])
+    sources = [
+        LINEAR,
+        NONLINEAR,
+        "def equation(delta, omega, x, u, p):\n"
+        "    return p[0] * omega + p[1] * np.cos(delta), p[0] * x + p[2] * u + p[3]\n",
+        "def equation(delta, omega, x, u, p):\n"
+        "    return p[0] * omega + p[1] * np.tanh(p[2] * x), p[3] * u * x + p[4]\n",
+    ]
+    skeletons = [
+        compile_skeleton(s, variables=VARIABLES, n_outputs=2) for s in sources
+    ]  # fmt: skip
+    w = rng.uniform(0.5, 2.0, size=N)
+
+    def run() -> list:
+        return fit_batch(
+            skeletons, data, targets, key=jax.random.key(1), weights=w,
+            operator=Operator(index, weight),
+        )  # fmt: skip
+
+    whole = run()
+    for chunk in (1, 3 * N + 1):
+        monkeypatch.setattr(lm, "BAND_CHUNK", chunk)
+        monkeypatch.setattr(fit, "PROBE_CHUNK", chunk)
+        for a, b in zip(whole, run(), strict=True):
+            assert a.params.tobytes() == b.params.tobytes()
+            assert a.losses.tobytes() == b.losses.tobytes()
+            assert a.restart_losses.tobytes() == b.restart_losses.tobytes()
+    big = rng.normal(size=(5, 2, N))
+    monkeypatch.setattr(lm, "BAND_CHUNK", 1)
+    band = lm.band_matrix(index, weight)
+    one = np.ascontiguousarray((band @ big.reshape(-1, N).T).T).reshape(big.shape)
+    assert lm.apply_band(band, big).tobytes() == one.tobytes()
