@@ -691,7 +691,8 @@ def discover(
             ae_seconds += joint_report["seconds"]
         simulation_report = None
         if config.selection is not None:
-            observer.message("AE and DE refit by simulation, checked on left-out recordings ...")
+            held = "recordings" if len(train) > 1 else "time blocks"
+            observer.message(f"AE and DE refit by simulation, checked on left-out {held} ...")
             de_before = de
             de, ae, simulation_report = refit_simulation(
                 de, ae, train, regressors, config.selection

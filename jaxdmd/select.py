@@ -33,8 +33,15 @@ programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
 candidate rollouts cost seconds. Play-in is linear between samples and never across an event (a
 fault switched on or off), as :mod:`jaxdmd.rollout` plays signals in.
 
-With one recording there is nothing to hold out: each line is fitted on that recording and
-simulated on it (held-out time blocks are not implemented yet).
+With one recording, held-out time blocks take the recordings' place (:func:`_held_out`): the
+recording is cut into :data:`BLOCKS` contiguous blocks of equal duration (the SINDy baselines'
+convention), each block's samples are weighted out of the fit in turn (the blocks are the
+problem's groups, as the recordings are otherwise), and the held-out block is simulated from the
+recording's states at its first sample (the estimated states, where the AE selection plays in
+from them) with everything else played in as above; its NRMSE is taken over the block and
+normalised by the whole recording's range per state (a settled block's own range is only its
+noise). The coupled comparison of step 2 stays in-sample, as with several recordings. Each
+report says what was held out (``held_out``: ``"recordings"`` or ``"time blocks (4)"``).
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from __future__ import annotations
 import ast
 import copy
 import dataclasses
+import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -137,6 +145,7 @@ def simulate_host(
     algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
     substeps: int = 1,
     blowup: float = 1e3,
+    windows: Sequence[tuple[int, int]] | None = None,
 ) -> np.ndarray:
     """Integrate ``d targets/dt = program(arguments, p)`` from each recording's first sample,
     every argument that is not a target played in from the recording. ``channels`` names the
@@ -147,8 +156,11 @@ def simulate_host(
     played in (a DAE rollout).
 
     ``params`` is ``[B, P]``, one row per recording (``B == len(recordings)``; the recordings
-    must share their time grid and events). Returns the simulated targets ``[B, S, n]`` (NaN
-    from the first sample a rollout diverged at).
+    must share their time grid and events). ``windows`` (one ``(start, stop)`` sample range
+    per row) starts row ``b``'s rollout at sample ``start`` from the recording's states there
+    (a held-out time block, :func:`time_blocks`): before it the row holds the recorded states;
+    only the samples in the window are meant to be scored (:func:`simulation_error`). Returns
+    the simulated targets ``[B, S, n]`` (NaN from the first sample a rollout diverged at).
     """
     targets = tuple(targets)
     first = recordings[0]
@@ -171,6 +183,7 @@ def simulate_host(
     x = measured[:, :, 0].copy()
     out[:, :, 0] = x
     params = np.asarray(params, dtype=float)
+    starts = None if windows is None else np.asarray([w[0] for w in windows])
 
     def field(x: np.ndarray, k: int, w: float) -> np.ndarray:
         values = {a: x[:, i] for a, i in index.items()}
@@ -190,6 +203,9 @@ def simulate_host(
                 k1 = field(x, k, w0)
                 k2 = field(x + h * k1, k, w1)
                 x = x + 0.5 * h * (k1 + k2)
+            if starts is not None:  # a row whose block starts later holds the recording
+                hold = k + 1 <= starts
+                x[hold] = measured[hold, :, k + 1]
             bad = ~(np.isfinite(x) & (np.abs(x) <= bound))  # each state on its own
             x[bad] = np.nan
             out[:, :, k + 1] = x
@@ -198,28 +214,113 @@ def simulate_host(
     return out
 
 
-def simulation_error(simulated: np.ndarray, recordings: Sequence[Dataset], targets) -> np.ndarray:
+def simulation_error(
+    simulated: np.ndarray, recordings: Sequence[Dataset], targets,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:  # fmt: skip
     """NRMSE ``[B, S]`` of simulated states against the recordings (RMSE over the measured
-    range); inf where a rollout diverged."""
+    range); inf where a rollout diverged. With ``windows`` (:func:`simulate_host`) the RMSE of
+    row ``b`` is over its window, the range still the whole recording's."""
     measured = np.stack([[np.asarray(ds[s], dtype=float) for s in targets] for ds in recordings])
-    return _nrmse(simulated, measured)
+    return _nrmse(simulated, measured, windows)
 
 
-def _range(measured: np.ndarray) -> np.ndarray:
+def _range(measured: np.ndarray, axis: int = 2) -> np.ndarray:
     """The NRMSE's scale ``[B, S]`` of recordings ``[B, S, n]``: each state's measured range
     (its largest magnitude, at least 1, where it does not move)."""
-    scale = np.ptp(measured, axis=2)
-    return np.where(scale > 0, scale, np.maximum(np.max(np.abs(measured), axis=2), 1.0))
+    scale = np.ptp(measured, axis=axis)
+    return np.where(scale > 0, scale, np.maximum(np.max(np.abs(measured), axis=axis), 1.0))
 
 
-def _nrmse(simulated: np.ndarray, measured: np.ndarray) -> np.ndarray:
+def _nrmse(
+    simulated: np.ndarray, measured: np.ndarray,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:  # fmt: skip
+    if windows is not None:
+        return _windowed_nrmse(simulated, measured, windows)
     scale = _range(measured)
     err = np.sqrt(np.mean((simulated - measured) ** 2, axis=2)) / scale
     return np.where(np.isfinite(err), err, np.inf)
 
 
+def _windowed_nrmse(
+    simulated: np.ndarray, measured: np.ndarray, windows: Sequence[tuple[int, int]]
+) -> np.ndarray:
+    """NRMSE ``[B, ...]`` of rollouts ``[B, ..., n]`` (time last) over each row's window
+    ``(start, stop)``, scaled by the whole recording's range per state: a settled block's own
+    range is only its noise."""
+    mask = _window_mask(windows, simulated.shape[-1])
+    mask = mask.reshape(mask.shape[0], *(1,) * (simulated.ndim - 2), mask.shape[1])
+    squared = np.where(mask, (simulated - measured) ** 2, 0.0)
+    err = np.sqrt(squared.sum(axis=-1) / mask.sum(axis=-1)) / _range(measured, axis=-1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def _window_mask(windows: Sequence[tuple[int, int]], n: int) -> np.ndarray:
+    """``[B, n]``: True on the samples of each row's window."""
+    k = np.arange(n)
+    return np.stack([(k >= a) & (k < b) for a, b in windows])
+
+
 # ----------------------------------------------------------------------------------------------
 # folds: leave one recording (or one time block) out
+
+BLOCKS = 4
+"""Time blocks of equal duration a single training recording is cut into where a choice needs
+held-out data (the convention of the SINDy baselines' thresholds, :mod:`jaxdmd.baselines`:
+a quarter of the recording held out at a time)."""
+
+
+def time_blocks(t: np.ndarray, k: int = BLOCKS) -> list[tuple[int, int]]:
+    """The ``(start, stop)`` sample ranges of ``k`` contiguous blocks of equal duration of the
+    time grid ``t`` (as :func:`jaxdmd.baselines._block_errors` cuts; empty blocks dropped)."""
+    t = np.asarray(t, dtype=float)
+    cuts = t[0] + (t[-1] - t[0]) * np.arange(1, k) / k
+    edges = [0, *(int(i) for i in np.searchsorted(t, cuts)), t.size]
+    return [(a, b) for a, b in itertools.pairwise(edges) if b > a]
+
+
+@dataclass(frozen=True)
+class _Holdout:
+    """What a choice holds out: ``state``'s problem groups are the folds (recordings, or time
+    blocks of one recording); ``recordings`` and ``played_from`` give one recording per fold
+    (the single recording repeated for its blocks), ``windows`` each fold's block (None: the
+    whole recording)."""
+
+    state: SearchState
+    recordings: list[Dataset]
+    played_from: list[Dataset] | None
+    windows: list[tuple[int, int]] | None
+    label: str
+
+
+def _held_out(
+    state: SearchState, recordings: Sequence[Dataset],
+    played_from: Sequence[Dataset] | None = None,
+) -> _Holdout:  # fmt: skip
+    """Folds of leave-one-out choices: the recordings, or with one recording its
+    :data:`BLOCKS` time blocks (each block's samples weighted out of the fit in turn, then the
+    block simulated from the recording's states at its first sample). Where the problem's
+    samples are not the recording's (the integral form) one recording stays in-sample."""
+    recordings = list(recordings)
+    played = None if played_from is None else list(played_from)
+    if len(recordings) > 1:
+        return _Holdout(state, recordings, played, None, "recordings")
+    n = recordings[0].n_samples
+    blocks = time_blocks(np.asarray(recordings[0].t))
+    if state.problem.targets.shape[1] != n or len(blocks) < 2:
+        return _Holdout(state, recordings, played, None, "none (one recording, in-sample)")
+    groups = np.zeros(n, dtype=int)
+    for b, (start, stop) in enumerate(blocks):
+        groups[start:stop] = b
+    problem = eqx.tree_at(
+        lambda p: p.groups, state.problem, jax.numpy.asarray(groups), is_leaf=lambda x: x is None
+    )
+    k = len(blocks)
+    return _Holdout(
+        replace_state(state, problem=problem), recordings * k,
+        None if played is None else played * k, blocks, f"time blocks ({k})",
+    )  # fmt: skip
 
 
 def _folds(state: SearchState) -> np.ndarray:
@@ -417,16 +518,18 @@ def _usable_fits(
 
 def _per_recording(rows: np.ndarray, state: SearchState, n: int) -> np.ndarray:
     """Fold parameter rows ``[folds, P]`` as one row per recording (``n``): the fold that left
-    each recording out, or the single fit repeated when there is nothing to hold out."""
+    each recording (or time block, :class:`_Holdout`) out, or the single fit repeated when there
+    is nothing to hold out."""
     single = len(np.unique(_folds(state))) == 1
     return np.repeat(rows, n, axis=0) if single or rows.shape[0] == 1 else rows
 
 
 def _single_errors(
     state: SearchState, j: int, lines: Sequence[ln.Line], recordings: Sequence[Dataset],
-    config: SelectionConfig,
+    config: SelectionConfig, windows: Sequence[tuple[int, int]] | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """Each line's simulation error, its equation's state integrated alone, left-out fits.
+    """Each line's simulation error, its equation's state integrated alone, left-out fits
+    (one recording per fold; ``windows``: each fold's held-out time block, :class:`_Holdout`).
 
     The lines are simulated side by side: one program whose output i is line i with the state
     renamed to its own copy, so one evaluation per step serves every candidate."""
@@ -459,10 +562,10 @@ def _single_errors(
         rows = _per_recording(rows, state, len(recordings))
         sim = simulate_host(
             program, copies, rows, recordings, channels=[target] * len(copies),
-            substeps=config.substeps, blowup=config.blowup,
+            substeps=config.substeps, blowup=config.blowup, windows=windows,
         )  # fmt: skip
         measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])[:, None]
-        err = _nrmse(sim, np.broadcast_to(measured, sim.shape))  # [B, lines]
+        err = _nrmse(sim, np.broadcast_to(measured, sim.shape), windows)  # [B, lines]
         for (_, i), e in zip(group, err.mean(axis=0), strict=True):
             errors[i] = float(e)
 
@@ -527,9 +630,10 @@ def select_by_simulation(
     ``derivative_choice`` is :func:`jaxdmd.search.final_equations`'s result (the lines chosen
     by cross-validated derivative error); ``recordings`` the training recordings the loop's
     problem was built from (same order). Returns the chosen equations (parameters fitted on all
-    recordings, as the search fits) and a report: per equation the simulation error of each
-    candidate line, the Pareto front (terms against simulation error), the chosen line; and the
-    coupled simulation error of the derivative choice and of the chosen model.
+    recordings, as the search fits) and a report: what was held out (``held_out``: the
+    recordings, or with one recording its time blocks), per equation the simulation error of
+    each candidate line, the Pareto front (terms against simulation error), the chosen line;
+    and the coupled simulation error of the derivative choice and of the chosen model.
     """
     config = config or SelectionConfig()
     contract = state.contract
@@ -543,12 +647,13 @@ def select_by_simulation(
     derived, _ = ln.split_lines(derivative_choice.source)
     archived = _archive_lines(state)
     picked: list[ln.Line] = []
-    report: dict[str, object] = {"equations": {}}
+    held = _held_out(state, recordings)
+    report: dict[str, object] = {"held_out": held.label, "equations": {}}
     for j, target in enumerate(contract.targets):
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
 
         def score(new: list[ln.Line], j: int = j) -> np.ndarray:
-            return _single_errors(state, j, new, sims, config)
+            return _single_errors(held.state, j, new, held.recordings, config, held.windows)
 
         errors = score(lines)
         lines, errors = _local_search(
@@ -593,11 +698,13 @@ def dae_error(
     recordings: Sequence[Dataset],
     config: SelectionConfig,
     played_from: Sequence[Dataset] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
 ) -> float:
     """Mean NRMSE of the states of the closed model (the algebraic variables computed by the AE
     program) simulated on ``recordings``; inf if a rollout diverged. ``ae_params`` is one
     parameter vector, or ``[B, P]``: one row per recording. The other channels and the initial
-    states are played in from ``played_from`` (default: ``recordings``)."""
+    states are played in from ``played_from`` (default: ``recordings``). ``windows``: each
+    row's time block (:func:`simulate_host`)."""
     skeleton = de.skeleton()
     program = interp.program_of(skeleton)
     if program is None:
@@ -612,9 +719,9 @@ def dae_error(
         program, targets, np.repeat(p, b, axis=0),
         list(recordings) if played_from is None else list(played_from),
         algebraic=(ae_program, tuple(ae_targets), q),
-        substeps=config.substeps, blowup=config.blowup,
+        substeps=config.substeps, blowup=config.blowup, windows=windows,
     )  # fmt: skip
-    return float(np.mean(simulation_error(sim, recordings, targets)))
+    return float(np.mean(simulation_error(sim, recordings, targets, windows)))
 
 
 def simulation_nrmse(
@@ -660,6 +767,7 @@ def _closed_errors(
     ae_state: SearchState, j: int, lines: Sequence[ln.Line], de: Equations,
     recordings: Sequence[Dataset], config: SelectionConfig,
     played_from: Sequence[Dataset] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
 ) -> np.ndarray:  # fmt: skip
     """Each algebraic line's simulation error with only its own variable closed.
 
@@ -722,10 +830,10 @@ def _closed_errors(
         rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
         sim = simulate_host(
             program, names, rows, source_of_play, channels=[*states] * len(group),
-            substeps=config.substeps, blowup=config.blowup,
+            substeps=config.substeps, blowup=config.blowup, windows=windows,
         )  # fmt: skip
         sim = sim.reshape(len(recordings), len(group), len(states), -1)
-        err = _nrmse(sim, np.broadcast_to(measured[:, None], sim.shape))  # [B, group, S]
+        err = _nrmse(sim, np.broadcast_to(measured[:, None], sim.shape), windows)
         for (_, i), e in zip(group, err.mean(axis=(0, 2)), strict=True):
             errors[i] = float(e)
 
@@ -767,9 +875,11 @@ def select_algebraic(
     rollouts are compared with), in the order of the AE problem's groups; ``played_from`` the
     recordings the other channels and the initial states are played in from (default: the
     same; :func:`jaxdmd.pipeline.discover` passes the AE loop's regressors, the estimated
-    states). Returns the equations (parameters fitted on all recordings) and a report: per
-    variable the candidates, the Pareto front, the choice and the closed error with it; the
-    closed error of the fit choice and of the result; the variables changed.
+    states). With one recording, its time blocks are held out instead (:func:`_held_out`).
+    Returns the equations (parameters fitted on all recordings) and a report: what was held
+    out (``held_out``), per variable the candidates, the Pareto front, the choice and the
+    closed error with it; the closed error of the fit choice and of the result; the variables
+    changed.
     """
     config = config or SelectionConfig()
     recordings = list(recordings)
@@ -787,7 +897,8 @@ def select_algebraic(
     # serve any of them
     shared = _shared_terms(archived, 2 * config.terms)
     picked: list[ln.Line] = []
-    report: dict[str, object] = {"equations": {}}
+    held = _held_out(ae_state, recordings, played_from)
+    report: dict[str, object] = {"held_out": held.label, "equations": {}}
     for j, target in enumerate(contract.targets):
         if target not in used:
             picked.append(derived[j])
@@ -795,7 +906,9 @@ def select_algebraic(
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
 
         def score(new: list[ln.Line], j: int = j) -> np.ndarray:
-            return _closed_errors(ae_state, j, new, de, recordings, config, played_from)
+            return _closed_errors(
+                held.state, j, new, de, held.recordings, config, held.played_from, held.windows
+            )
 
         errors = score(lines)
         pool = _term_pool(archived, j, config.terms)
@@ -809,7 +922,9 @@ def select_algebraic(
     # the chosen lines join the closed model one at a time, each kept only if the closed model
     # then simulates the training recordings (fits held out) better by more than the tolerance
     fits: dict[tuple[int, str], np.ndarray | None] = {}
-    by_fit = _closed_loro(ae_state, derived, de, recordings, config, played_from, fits)
+    by_fit = _closed_loro(
+        held.state, derived, de, held.recordings, config, held.played_from, fits, held.windows
+    )
     report["dae_nrmse_fit_choice"] = by_fit
     current_lines, error = list(derived), by_fit
     changed: list[str] = []
@@ -818,8 +933,9 @@ def select_algebraic(
             continue
         trial_lines = [*current_lines[:j], picked[j], *current_lines[j + 1 :]]
         trial_error = _closed_loro(
-            ae_state, trial_lines, de, recordings, config, played_from, fits
-        )
+            held.state, trial_lines, de, held.recordings, config, held.played_from, fits,
+            held.windows,
+        )  # fmt: skip
         report["equations"][target]["dae_nrmse"] = trial_error  # type: ignore[index]
         if trial_error * (1 + config.tolerance) < error:
             current_lines, error = trial_lines, trial_error
@@ -910,6 +1026,7 @@ def _closed_loro(
     recordings: Sequence[Dataset], config: SelectionConfig,
     played_from: Sequence[Dataset] | None = None,
     fits: dict[tuple[int, str], np.ndarray | None] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
 ) -> float:  # fmt: skip
     """Mean NRMSE of the states of the closed model (state equations ``de``, algebraic lines
     ``lines``), each recording simulated with the algebraic lines fitted on the others; inf if
@@ -933,7 +1050,7 @@ def _closed_loro(
     except (interp.LoweringError, ValueError):
         return float("inf")
     rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
-    return dae_error(de, program, contract.targets, rows, recordings, config, played_from)
+    return dae_error(de, program, contract.targets, rows, recordings, config, played_from, windows)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -20,7 +20,12 @@ is not (it fits noise and structure errors into the parameters), so it is only k
 generalises: each recording is left out in turn, the parameters are fitted on the others and
 the left-out one is simulated; the refit is kept only if the mean left-out error is lower than
 the in-sample error of the parameters it starts from by more than the selection's
-``tolerance`` (with one recording, or recordings on different time grids, it is skipped).
+``tolerance`` (with recordings on different time grids, it is skipped). With one recording its
+time blocks are left out instead (:func:`jaxdmd.select.time_blocks`, four of equal duration):
+each block's samples are weighted out of the residual in turn, the parameters fitted on the
+rest, and the block simulated from the states at its first sample, its error over the block
+normalised by the whole recording's range; the given parameters are scored on the same
+blocks.
 
 The simulation is the host simulation's scheme (:func:`jaxdmd.select.simulate_host`: Heun's
 method on the sample grid with ``substeps``, inputs linear between samples and held across an
@@ -68,6 +73,7 @@ class _Simulator:
         played_from: Sequence[Dataset],
         substeps: int,
         blowup: float,
+        windows: Sequence[tuple[int, int]] | None = None,
     ) -> None:
         self.de_skeleton, self.ae_skeleton = de.skeleton(), ae.skeleton()
         self.states = tuple(de.contract.targets)
@@ -86,6 +92,17 @@ class _Simulator:
         self.x0 = jnp.asarray(
             np.stack([[float(np.asarray(ds[s])[0]) for s in self.states] for ds in played_from])
         )
+        # held-out time blocks (select.simulate_host's windows): row b holds the played-in
+        # states until its block starts, and is scored on its block only
+        self.windows = None if windows is None else list(windows)
+        self.hold = self.reference = None
+        if windows is not None:
+            start = np.asarray([a for a, _ in windows])
+            self.hold = jnp.asarray(np.arange(1, t.size)[None, :] <= start[:, None])  # [B, n-1]
+            states = np.stack(
+                [[np.asarray(ds[s], dtype=float) for s in self.states] for ds in played_from]
+            )
+            self.reference = jnp.asarray(np.swapaxes(states[:, :, 1:], 1, 2))  # [B, n-1, S]
         y = np.stack([[np.asarray(ds[s], dtype=float) for s in self.states] for ds in measured])
         self.y = jnp.asarray(y)  # [B, S, n]
         self.scale = jnp.asarray(select._range(y))
@@ -95,9 +112,12 @@ class _Simulator:
     def _rollout(
         self, theta: jax.Array, names: Sequence[str], left: jax.Array, right: jax.Array,
         x0: jax.Array, bound: jax.Array, closed: bool,
+        hold: jax.Array | None = None, reference: jax.Array | None = None,
     ) -> jax.Array:  # fmt: skip
         """One recording's simulated states ``[S, n]``; a state that leaves ``bound`` is held
-        there (finite, so the fit sees a large residual rather than a NaN)."""
+        there (finite, so the fit sees a large residual rather than a NaN). ``hold`` and
+        ``reference`` (``[n - 1]``, ``[n - 1, S]``): the states after each step are the
+        reference's where ``hold`` is set (before a held-out block starts)."""
         de_p, ae_p = theta[: self.n_de], theta[self.n_de :]
         de_p = de_p if self.n_de else jnp.zeros(1)
         ae_p = ae_p if ae_p.size else jnp.zeros(1)
@@ -115,7 +135,7 @@ class _Simulator:
             return jnp.stack([jnp.broadcast_to(jnp.asarray(d, dtype=x.dtype), ()) for d in out])
 
         def step(x: jax.Array, interval: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
-            h, lo, hi = interval
+            h, lo, hi = interval[:3]
             dt = h / self.substeps
             for m in range(self.substeps):  # Heun's method, as select.simulate_host
                 w0, w1 = m / self.substeps, (m + 1) / self.substeps
@@ -123,9 +143,12 @@ class _Simulator:
                 k2 = field(x + dt * k1, (1 - w1) * lo + w1 * hi)
                 x = x + 0.5 * dt * (k1 + k2)
             x = jnp.where(jnp.isfinite(x), jnp.clip(x, -bound, bound), bound)
+            if hold is not None:
+                x = jnp.where(interval[3], interval[4], x)
             return x, x
 
-        _, xs = jax.lax.scan(step, x0, (self.h, left, right))
+        inputs = (self.h, left, right) if hold is None else (self.h, left, right, hold, reference)
+        _, xs = jax.lax.scan(step, x0, inputs)
         return jnp.concatenate([x0[:, None], xs.T], axis=1)
 
     def simulate(self, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -133,6 +156,16 @@ class _Simulator:
         runs = ((True, self.closed_names, self.closed), (False, self.open_names, self.open))
         out = []
         for closed, names, (left, right) in runs:
+            if self.hold is not None:
+
+                def held(lo: jax.Array, hi: jax.Array, x0: jax.Array, bound: jax.Array,
+                         hold: jax.Array, reference: jax.Array, closed: bool = closed,
+                         names: Sequence[str] = names) -> jax.Array:  # fmt: skip
+                    return self._rollout(theta, names, lo, hi, x0, bound, closed, hold, reference)
+
+                args = (left, right, self.x0, self.bound, self.hold, self.reference)
+                out.append(jax.vmap(held)(*args))
+                continue
 
             def one(lo: jax.Array, hi: jax.Array, x0: jax.Array, bound: jax.Array,
                     closed: bool = closed, names: Sequence[str] = names) -> jax.Array:  # fmt: skip
@@ -143,21 +176,27 @@ class _Simulator:
 
     def residual(self, theta: jax.Array, weight: jax.Array) -> jax.Array:
         """Scaled residuals whose sum of squares is the sum over recordings (weighted), states
-        and both simulations of the NRMSE squared."""
+        and both simulations of the NRMSE squared. ``weight`` is ``[B]`` (per recording) or
+        ``[B, n]`` (per sample: a time block weighted out)."""
         n = self.y.shape[2]
+        w = weight[:, None, None] if weight.ndim == 1 else weight[:, None, :]
         parts = []
         for sim in self.simulate(theta):
             r = (sim - self.y) / self.scale[:, :, None] / np.sqrt(n)
-            parts.append((r * weight[:, None, None]).ravel())
+            parts.append((r * w).ravel())
         return jnp.concatenate(parts)
 
     def errors(self, theta: jax.Array) -> np.ndarray:
-        """NRMSE ``[2, B, S]`` of the closed and the open rollouts (inf where one diverged)."""
+        """NRMSE ``[2, B, S]`` of the closed and the open rollouts (inf where one diverged);
+        with time blocks, over each row's block (scaled by the whole recording's range)."""
         out = []
         for sim in self.simulate(theta):
             sim = np.asarray(sim)
-            err = select._nrmse(sim, np.asarray(self.y))
-            hit = np.any(np.abs(sim) >= np.asarray(self.bound)[:, :, None], axis=2)
+            err = select._nrmse(sim, np.asarray(self.y), self.windows)
+            beyond = np.abs(sim) >= np.asarray(self.bound)[:, :, None]
+            if self.windows is not None:
+                beyond &= select._window_mask(self.windows, sim.shape[2])[:, None, :]
+            hit = np.any(beyond, axis=2)
             out.append(np.where(hit, np.inf, err))
         return np.stack(out)
 
@@ -181,8 +220,10 @@ def refit_simulation(
     simulation's ``substeps`` and ``blowup``. The residual is that of the states simulated
     closed and with the measured algebraic variables played in, each scaled by the recording's
     range (NRMSE). Returns the equations (refitted or as given) and a report: ``kept``
-    (``"refit"`` or why not), the mean left-out NRMSE of the refit and the in-sample NRMSE of
-    the given parameters (``loro``), the in-sample NRMSE before and after, and the seconds.
+    (``"refit"`` or why not), what was left out (``held_out``: ``"recordings"`` or, with one
+    recording, ``"time blocks (4)"``), the mean left-out NRMSE of the refit and the in-sample
+    NRMSE of the given parameters on the same recordings or blocks (``loro``), the in-sample
+    NRMSE before and after, and the seconds.
     """
     import optimistix as optx
 
@@ -199,8 +240,6 @@ def refit_simulation(
         report["seconds"] = time.perf_counter() - start
         return out[0], out[1], report
 
-    if len(train) < 2:
-        return done("given: one recording, nothing to leave out")
     t0 = np.asarray(train[0].t)
     if any(not np.array_equal(np.asarray(ds.t), t0) for ds in [*train, *played_from]):
         return done("given: the recordings do not share a time grid")
@@ -220,19 +259,46 @@ def refit_simulation(
         return solution.value, solution.stats["num_steps"]
 
     b = len(train)
-    # each recording left out: fitted on the others from the given parameters, simulated
-    left_out = []
-    for i in range(b):
-        weight = jnp.asarray(np.arange(b) != i, dtype=theta0.dtype)
-        theta, _ = fit(theta0, weight)
-        err = sim.errors(theta)[:, i]
-        left_out.append(float(np.mean(err)) if np.all(np.isfinite(err)) else float("inf"))
-    old = float(np.mean(before))
-    new = float(np.mean(left_out))
-    report["loro"] = {"given": old, "refit": new, "per_recording": left_out}
+    if b > 1:
+        report["held_out"] = "recordings"
+        # each recording left out: fitted on the others from the given parameters, simulated
+        left_out = []
+        for i in range(b):
+            weight = jnp.asarray(np.arange(b) != i, dtype=theta0.dtype)
+            theta, _ = fit(theta0, weight)
+            err = sim.errors(theta)[:, i]
+            left_out.append(float(np.mean(err)) if np.all(np.isfinite(err)) else float("inf"))
+        old = float(np.mean(before))
+        new = float(np.mean(left_out))
+        report["loro"] = {"given": old, "refit": new, "per_recording": left_out}
+    else:
+        # one recording: its time blocks left out in turn (select._held_out), each fitted on
+        # the other blocks' samples and simulated from the states at its first sample
+        blocks = select.time_blocks(t0)
+        report["held_out"] = f"time blocks ({len(blocks)})"
+        k = len(blocks)
+        if k < 2:
+            return done("given: one recording too short to cut into time blocks")
+        held = _Simulator(
+            de, ae, train * k, played_from * k, config.substeps, config.blowup, windows=blocks
+        )
+        given = held.errors(theta0)  # [2, blocks, S], the given parameters on each block
+        if not np.all(np.isfinite(given)):
+            return done("given: the model does not simulate every time block")
+        left_out = []
+        for i, (start, stop) in enumerate(blocks):
+            weight = np.ones((1, t0.size))
+            weight[0, start:stop] = 0.0
+            theta, _ = fit(theta0, jnp.asarray(weight, dtype=theta0.dtype))
+            err = held.errors(theta)[:, i]
+            left_out.append(float(np.mean(err)) if np.all(np.isfinite(err)) else float("inf"))
+        old = float(np.mean(given))
+        new = float(np.mean(left_out))
+        report["loro"] = {"given": old, "refit": new, "per_block": left_out}
     if not new * (1.0 + config.tolerance) < old:
-        return done("given: the refit does not simulate left-out recordings better")
-    theta, steps = fit(theta0, jnp.ones(b, dtype=theta0.dtype))
+        return done(f"given: the refit does not simulate left-out {report['held_out']} better")
+    every = jnp.ones(b if b > 1 else (1, t0.size), dtype=theta0.dtype)  # one compiled fit
+    theta, steps = fit(theta0, every)
     after = sim.errors(theta)
     report["steps"] = int(steps)
     report["nrmse"] = {
@@ -242,7 +308,7 @@ def refit_simulation(
     theta = np.asarray(theta, dtype=float)
     if not (np.all(np.isfinite(after)) and np.all(np.isfinite(theta))):
         return done("given: the refit on every recording failed")
-    if float(np.mean(after)) > old:
+    if float(np.mean(after)) > float(np.mean(before)):
         return done("given: the refit on every recording simulates them worse")
     de_new = dataclasses.replace(de, params=tuple(float(x) for x in theta[: sim.n_de]))
     ae_new = dataclasses.replace(ae, params=tuple(float(x) for x in theta[sim.n_de :]))
