@@ -236,10 +236,12 @@ def _nrmse(
     simulated: np.ndarray, measured: np.ndarray,
     windows: Sequence[tuple[int, int]] | None = None,
 ) -> np.ndarray:  # fmt: skip
+    """NRMSE ``[B, ...]`` of rollouts ``[B, ..., n]`` (time last), each series scaled by its
+    measured range."""
     if windows is not None:
         return _windowed_nrmse(simulated, measured, windows)
-    scale = _range(measured)
-    err = np.sqrt(np.mean((simulated - measured) ** 2, axis=2)) / scale
+    scale = _range(measured, axis=-1)
+    err = np.sqrt(np.mean((simulated - measured) ** 2, axis=-1)) / scale
     return np.where(np.isfinite(err), err, np.inf)
 
 

@@ -369,3 +369,20 @@ def test_one_recording_held_out_blocks_tell_an_algebraic_stand_in_from_the_truth
         ]
         assert blocks[1] > 1.5 * blocks[0], blocks
         assert blocks[0] < 1.3 * in_sample[0]  # the truth generalises to the blocks
+
+
+def test_the_simulation_nrmse_is_taken_over_time_for_every_series():
+    """The closed algebraic choice scores rollouts ``[recordings, candidates, states, n]``:
+    each series' RMSE over time scaled by its own measured range (an earlier version took the
+    RMS over the states at each sample, scaled by their spread)."""
+    from jaxdmd.select import _nrmse
+
+    rng = np.random.default_rng(0)
+    measured = rng.normal(size=(3, 2, 4, 50)) * np.array([1.0, 10.0, 0.1, 3.0])[:, None]
+    simulated = measured + 0.05 * rng.normal(size=measured.shape)
+    err = _nrmse(simulated, measured)
+    assert err.shape == (3, 2, 4)
+    expected = np.sqrt(np.mean((simulated - measured) ** 2, axis=-1)) / np.ptp(measured, axis=-1)
+    assert np.allclose(err, expected, rtol=1e-12)
+    three = _nrmse(simulated[:, 0], measured[:, 0])  # [recordings, states, n]: as before
+    assert np.array_equal(three, err[:, 0])
