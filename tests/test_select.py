@@ -135,10 +135,12 @@ def _follower(n: int = 3, noise: float = 0.01) -> list[Dataset]:
     return out
 
 
-def test_a_stand_in_that_wins_on_derivatives_loses_in_simulation():
-    from jaxdmd.select import SelectionConfig, _terms
+def _follower_search(recordings: list[Dataset]) -> tuple[search.SearchState, search.Equations]:
+    """The follower's DE search and its choice by cross-validated derivative error, checked to
+    hold the premise of the tests that use it: that choice prefers the stand-in u to x in
+    dy/dt."""
+    from jaxdmd.select import _terms
 
-    recordings = _follower()
     problem, contract = de_problem(recordings, matched=True, library=("u", "w"))
     config = search.SearchConfig(
         n_islands=3, prompts_per_round=2, samples_per_prompt=4, max_rounds=6
@@ -147,8 +149,15 @@ def test_a_stand_in_that_wins_on_derivatives_loses_in_simulation():
     state = run_loop(state, OfflineProposer.for_problem(problem))
     by_derivatives = search.final_equations(state)
     lines = dict(zip(contract.targets, ln.split_lines(by_derivatives.source)[0], strict=True))
-    # the premise: cross-validated derivative error prefers the stand-in u for x in dy/dt
-    assert _terms(lines["y"]) == {"p * y", "p * u"}, lines["y"].text
+    assert _terms(lines["y"]) == {"p * y", "p * u"}, lines["y"].text  # the premise
+    return state, by_derivatives
+
+
+def test_a_stand_in_that_wins_on_derivatives_loses_in_simulation():
+    from jaxdmd.select import SelectionConfig, _terms
+
+    recordings = _follower()
+    state, by_derivatives = _follower_search(recordings)
     # the candidates alone do not hold the truth; varying them term by term finds it
     kept, _ = select_by_simulation(state, by_derivatives, recordings, SelectionConfig(steps=0))
     assert kept.readable()["dy/dt"] == by_derivatives.readable()["dy/dt"]
@@ -295,15 +304,7 @@ def test_one_recording_a_stand_in_that_wins_on_derivatives_loses_in_simulation()
     from jaxdmd.select import _terms
 
     recordings = _follower(n=1)
-    problem, contract = de_problem(recordings, matched=True, library=("u", "w"))
-    config = search.SearchConfig(
-        n_islands=3, prompts_per_round=2, samples_per_prompt=4, max_rounds=6
-    )
-    state = search.init(problem, contract, jax.random.key(0), config)
-    state = run_loop(state, OfflineProposer.for_problem(problem))
-    by_derivatives = search.final_equations(state)
-    lines = dict(zip(contract.targets, ln.split_lines(by_derivatives.source)[0], strict=True))
-    assert _terms(lines["y"]) == {"p * y", "p * u"}, lines["y"].text  # the premise
+    state, by_derivatives = _follower_search(recordings)
     chosen, report = select_by_simulation(state, by_derivatives, recordings)
     assert report["held_out"] == "time blocks (4)"
     line = ln.split_lines(chosen.source)[0][1]
