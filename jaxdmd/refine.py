@@ -123,7 +123,7 @@ def refit_bias_compensated(
     p = (G'G - C)^-1 G'y. The other channels are taken as measured without noise. An equation
     that is not affine in p, or whose corrected matrix is not positive definite, keeps its
     parameters. ``weights`` (``[targets, N]``, the recordings concatenated in the order of
-    ``estimates``) weight the samples (:func:`jaxdmd.select.recording_weights`); default 1.
+    ``estimates``) weight the samples (:func:`jaxdmd.select.weighted_by_recording`); default 1.
     Returns the equations and, per target, what was done.
     """
 
@@ -132,10 +132,10 @@ def refit_bias_compensated(
     contract = equations.contract
     report: dict[str, str] = {}
     sizes = [len(np.asarray(e.dataset.t)) for e in estimates]
+    starts = np.cumsum([0, *sizes[:-1]])
     for j, (target, line, mapping) in enumerate(
         zip(contract.targets, lines, mappings, strict=True)
     ):
-        w_all = np.ones(sum(sizes)) if weights is None else np.asarray(weights[j], dtype=float)
         skeleton = search._line_skeleton(contract, line)
         names = tuple(skeleton.arguments)
         if not names:
@@ -153,9 +153,8 @@ def refit_bias_compensated(
         gram = correction = 0.0
         cross = 0.0
         affine = True
-        for estimate, start in zip(estimates, np.cumsum([0, *sizes[:-1]]), strict=True):
+        for estimate, start, size in zip(estimates, starts, sizes, strict=True):
             ds = estimate.dataset
-            w = w_all[start : start + len(np.asarray(ds.t))]
             args = np.stack([np.asarray(ds[a], dtype=float) for a in names], axis=1)
             zero, one = jnp.zeros(n_p), jnp.ones(n_p)
             g = np.asarray(features(args, zero))
@@ -173,6 +172,7 @@ def refit_bias_compensated(
                 cross = cross + g.T @ y
                 correction = correction + np.einsum("npa,nab,nqb->pq", jac, cov, jac)
             else:
+                w = np.asarray(weights[j][start : start + size], dtype=float)
                 gram = gram + g.T @ (w[:, None] * g)
                 cross = cross + g.T @ (w * y)
                 correction = correction + np.einsum("n,npa,nab,nqb->pq", w, jac, cov, jac)
