@@ -75,6 +75,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxdmd.ties import settled
+
 __all__ = [
     "Archive",
     "ArchiveConfig",
@@ -288,8 +290,9 @@ for _cls in (Entry, Island, ArchiveConfig, Archive, Cluster, Recombination):
 
 
 def _better_key(entry: Entry) -> tuple[float, int, int]:
-    """Sort key, larger is better: higher score, then shorter, then older."""
-    return (entry.score, -entry.length, -entry.round)
+    """Sort key, larger is better: higher score, then shorter, then older (scores equal to
+    :data:`jaxdmd.ties.SIGNIFICANT` digits are a tie: the last bits do not rank)."""
+    return (settled(entry.score), -entry.length, -entry.round)
 
 
 def _log_error(score: float, floor: float) -> float:
@@ -369,7 +372,7 @@ def register(archive: Archive, entry: Entry, island: int | None) -> Archive:
         same = [i for i, e in enumerate(entries) if e.source == entry.source]
         if same:
             i = same[0]
-            if entry.score > entries[i].score:
+            if settled(entry.score) > settled(entries[i].score):
                 entries[i] = entry
             else:
                 continue
@@ -516,9 +519,11 @@ def diverse_parents(archive: Archive, key: jax.Array, k: int) -> tuple[Entry, ..
 def reset_weak_islands(archive: Archive, key: jax.Array) -> Archive:
     """Empty the weaker half of the islands and re-seed each from a random survivor's best.
 
-    Islands are ranked by their best score, ties broken at random (so equal islands are reset
-    fairly); the ``n_islands // 2`` lowest are reset. Each reset island receives the best entry of
-    a surviving island chosen uniformly at random (independently per reset island).
+    Islands are ranked by their best score, ties (equal to :data:`jaxdmd.ties.SIGNIFICANT`
+    digits: islands holding the same seed are equal, whatever their last bits) broken at random
+    (so equal islands are reset fairly); the ``n_islands // 2`` lowest are reset. Each reset
+    island receives the best entry of a surviving island chosen uniformly at random
+    (independently per reset island).
     """
     m = len(archive.islands)
     n_reset = m // 2
@@ -526,7 +531,7 @@ def reset_weak_islands(archive: Archive, key: jax.Array) -> Archive:
         return archive
     u = _uniforms(key, m + n_reset)
     bests = best_per_island(archive)
-    scores = np.array([-np.inf if e is None else e.score for e in bests])
+    scores = np.array([-np.inf if e is None else settled(e.score) for e in bests])
     order = np.lexsort((u[:m], scores))  # ascending score, random among ties
     weak, strong = order[:n_reset], order[n_reset:]
     islands = list(archive.islands)
@@ -585,9 +590,9 @@ def recombine(archive: Archive, max_plans: int = 4) -> list[Recombination]:
         if len(set(sources)) < 2 or sources in plans:
             continue
         plan = Recombination(donors, tuple(d.losses[j] for j, d in enumerate(donors)))
-        if plan.score > base.score:
+        if settled(plan.score) > settled(base.score):
             plans[sources] = plan
-    ranked = sorted(plans.values(), key=lambda p: p.score, reverse=True)
+    ranked = sorted(plans.values(), key=lambda p: settled(p.score), reverse=True)
     return ranked[: max(max_plans, 0)]
 
 

@@ -41,11 +41,13 @@ import numpy as np
 
 from jaxdmd import archive as arc
 from jaxdmd import lines as ln
+from jaxdmd import ties
 from jaxdmd.fit import FitConfig, FitResult, Operator, fit_batch
 from jaxdmd.prompts import Contract, Example, PromptRequest, Variable, parse_variable_requests
 from jaxdmd.prompts import render as render_prompt
 from jaxdmd.proposers import Sample
 from jaxdmd.skeleton import Skeleton, SkeletonError, compile_skeleton
+from jaxdmd.ties import settled
 
 
 @dataclass(frozen=True)
@@ -344,7 +346,7 @@ def _recombined(state: SearchState) -> tuple[Skeleton, int] | None:
     if len(entries) < 2:
         return None
     n_out = len(state.contract.targets)
-    chosen = [min(entries, key=lambda e, j=j: e.losses[j]) for j in range(n_out)]
+    chosen = [min(entries, key=lambda e, j=j: settled(e.losses[j])) for j in range(n_out)]
     if len({e.source for e in chosen}) < 2:
         return None
     try:
@@ -376,7 +378,8 @@ def _maybe_extend(state: SearchState) -> tuple[SearchState, tuple[str, ...], tup
     best = state.history[-1]
     if len(gains) < cfg.patience or max(gains[-cfg.patience :]) > cfg.epsilon or best > -cfg.gamma:
         return state, (), ()
-    top = sorted((e for isl in state.archive.islands for e in isl.entries), key=lambda e: -e.score)
+    entries = (e for isl in state.archive.islands for e in isl.entries)
+    top = sorted(entries, key=lambda e: -settled(e.score))
     requested: list[str] = []
     for entry in _distinct(top)[: cfg.top_k]:
         for name in parse_variable_requests(entry.requests):
@@ -579,7 +582,7 @@ def final_equations(
     chosen: list[ln.Line] = []
     for j in range(n_out):
         lines: dict[str, tuple[float, ln.Line]] = {}
-        for e in sorted(entries, key=lambda e, j=j: e.losses[j]):
+        for e in sorted(entries, key=lambda e, j=j: settled(e.losses[j])):
             line = ln.split_lines(e.source)[0][j]
             if line.text not in lines:
                 lines[line.text] = (e.losses[j], line)
@@ -600,7 +603,7 @@ def final_equations(
                 line.n_params,
                 len(line.variables() - states),  # each non-state needs closing (the AE loop)
                 sum(1 for _ in ast.walk(line.expr)),
-                score,
+                settled(score),
                 k,
             )
             for k, ((_, line), score) in enumerate(zip(options, scores, strict=True))
@@ -612,7 +615,7 @@ def final_equations(
             if not variants:
                 break
             cv = cross_validated_losses(state, j, variants)
-            best = int(np.argmin(cv))
+            best = ties.argmin(cv)
             if not cv[best] <= bound:
                 break
             line = variants[best]

@@ -57,7 +57,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jaxdmd import interp
+from jaxdmd import interp, ties
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
 from jaxdmd.search import (
@@ -71,6 +71,7 @@ from jaxdmd.search import (
     sample_weights,
 )
 from jaxdmd.skeleton import Skeleton, SkeletonError
+from jaxdmd.ties import settled
 
 __all__ = ["SelectionConfig", "select_algebraic", "select_by_simulation", "simulate_host"]
 
@@ -388,7 +389,7 @@ def _candidate_lines(
     for variant in ln.without_each_summand(chosen):
         out.setdefault(variant.text, variant)
     extra = 0
-    for _, lines in sorted(archived, key=lambda e: e[0][j]):
+    for _, lines in sorted(archived, key=lambda e: settled(e[0][j])):
         if extra >= k:
             break
         if lines[j].text not in out:
@@ -415,7 +416,8 @@ def _term_pool(
 ) -> list[ln.Line]:
     """The ``k`` one-parameter terms of equation ``j`` found in most archived lines (ties: in
     the order of the lines' training loss)."""
-    return _frequent_terms([lines[j] for _, lines in sorted(archived, key=lambda e: e[0][j])], k)
+    ranked = sorted(archived, key=lambda e: settled(e[0][j]))
+    return _frequent_terms([lines[j] for _, lines in ranked], k)
 
 
 def _shared_terms(
@@ -453,11 +455,11 @@ def _local_search(
             break
         best = float(np.min(errors))
         ranked = sorted(
-            (_complexity(line, states), float(e), i)
+            (_complexity(line, states), settled(e), i)
             for i, (line, e) in enumerate(zip(lines, errors, strict=True))
             if e <= best * (1 + config.tolerance)
         )
-        beam = dict.fromkeys([*(i for *_, i in ranked[:2]), int(np.argmin(errors))])
+        beam = dict.fromkeys([*(i for *_, i in ranked[:2]), ties.argmin(errors)])
         new: list[ln.Line] = []
         for i in beam:
             for variant in _neighbours(lines[i], pool):
@@ -479,7 +481,7 @@ def _choose(
     the most accurate dozen candidates, how many were simulated, the Pareto front."""
     bound = float(np.min(errors)) * (1 + config.tolerance)
     ranked = sorted(
-        (_complexity(line, states), float(err), i)
+        (_complexity(line, states), settled(err), i)
         for i, (line, err) in enumerate(zip(lines, errors, strict=True))
         if err <= bound
     )

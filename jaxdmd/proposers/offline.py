@@ -39,9 +39,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxdmd import lines as ln
+from jaxdmd import ties
 from jaxdmd.prompts import Contract, PromptRequest, Variable
 from jaxdmd.proposers import Sample
 from jaxdmd.search import Problem
+from jaxdmd.ties import settled
+
+NOTHING = 1e-9  # a share of the error explained below this is rounding, not a term's effect
 
 _NUMPY = {
     "sin": np.sin,
@@ -415,19 +419,20 @@ class OfflineProposer:
         share = self.explained(j, terms, free)
         if greedy or rng.random() > self.config.explore:
             top = share.max()
-            if top <= 0:
+            if top <= NOTHING:  # no term explains anything: rounding must not rank them
                 return terms
             logits = (share / top - 1.0) / self.config.rank_temperature
             prob = np.exp(logits - logits.max())
             choice = (
-                int(np.argmax(share)) if greedy else int(rng.choice(len(free), p=prob / prob.sum()))
+                ties.argmax(share) if greedy else int(rng.choice(len(free), p=prob / prob.sum()))
             )
         else:
             choice = int(rng.integers(len(free)))
         before = self.held_out(j, terms)
         after = self.held_out(j, [*terms, free[choice]])
         needed = max(self.config.min_gain, self.config.min_relative_gain * before)
-        if before - after >= needed or (not greedy and rng.random() < 0.1):
+        lucky = not greedy and rng.random() < 0.1  # drawn whatever the comparison says
+        if settled(before - after) >= settled(needed) or lucky:
             terms.append(free[choice])
         return terms
 
@@ -438,7 +443,7 @@ class OfflineProposer:
             drop = int(rng.integers(len(terms)))
         else:
             losses = [self.solve(j, terms[:i] + terms[i + 1 :])[2] for i in range(len(terms))]
-            drop = int(np.argmin(losses))
+            drop = ties.argmin(losses)
         return [t for i, t in enumerate(terms) if i != drop]
 
     def _prune(self, j, terms) -> list[str]:
@@ -450,7 +455,7 @@ class OfflineProposer:
                 return terms
             effect = np.abs(coef) * x.std(axis=0) / self.scale[j]
             effect[[t == "1" for t in terms]] = np.inf  # the offset is judged by removal below
-            worst = int(np.argmin(effect))
+            worst = ties.argmin(effect)
             if effect[worst] >= self.config.prune_effect:
                 break
             terms.pop(worst)
@@ -462,7 +467,7 @@ class OfflineProposer:
         while len(terms) > 1:
             base = self.held_out(j, terms)
             losses = [self.held_out(j, terms[:i] + terms[i + 1 :]) for i in range(len(terms))]
-            i = int(np.argmin(losses))
+            i = ties.argmin(losses)
             if losses[i] - base > max(self.config.min_relative_gain * base, 1e-5):
                 break
             terms.pop(i)
@@ -539,7 +544,8 @@ class OfflineProposer:
             if len(parents) > 1 and rng.random() < 0.35:
                 other = parents[int(rng.integers(len(parents)))]
                 for j in range(n_out):
-                    if other[0].losses[j] < losses[j] or rng.random() < 0.1:
+                    lucky = rng.random() < 0.1  # drawn whatever the comparison says
+                    if settled(other[0].losses[j]) < settled(losses[j]) or lucky:
                         equations[j], losses[j] = other[1][j], other[0].losses[j]
         ops = int(rng.integers(1, 4))
         for _ in range(ops):
@@ -602,9 +608,11 @@ class OfflineProposer:
                 terms = list(eq.terms) if eq.opaque is None else ["1"]
                 _, _, loss = self.solve(j, terms)
                 share = float(self.explained(j, terms, pool).max(initial=0.0)) * min(loss, 1.0)
-                if share > per_equation.get(j, (0.0, group))[0]:
+                if settled(share) > settled(per_equation.get(j, (0.0, group))[0]):
                     per_equation[j] = (share, group)
-        scores = sorted(((s, g, j) for j, (s, g) in per_equation.items()), key=lambda x: -x[0])
+        scores = sorted(
+            ((s, g, j) for j, (s, g) in per_equation.items()), key=lambda x: -settled(x[0])
+        )
         out: list[dict[str, str]] = []
         seen: set[str] = set()
         n_requests = 0
