@@ -87,10 +87,11 @@ class SelectionConfig:
             as good as the best (complexity breaks ties). The rollouts are compared with noisy
             recordings and driven by noisy played-in channels: differences of a few percent
             are noise, not evidence.
-        steps: rounds of the local search in term space after the first candidates: the
-            best lines so far (the simplest within ``tolerance`` and the most accurate) are
-            varied by dropping one term or adding one of the equation's ``terms`` most frequent
-            archived terms, and the variants are simulated in turn (0: no local search).
+        steps: at most this many rounds of the local search in term space after the first
+            candidates: the best lines so far (the simplest within ``tolerance`` and the most
+            accurate) are varied by dropping one term or adding one of the equation's ``terms``
+            most frequent archived terms, and the variants are simulated in turn, until every
+            best line has been varied (0: no local search).
         terms: how many of the archive's terms of an equation the local search may add.
         substeps: integration steps per sample interval (Heun's method: stable for modes
             faster than the samples by a factor of two, such as T''_q0 = 0.04 s at 100 Hz).
@@ -99,7 +100,7 @@ class SelectionConfig:
 
     candidates: int = 6
     tolerance: float = 0.25
-    steps: int = 2
+    steps: int = 4
     terms: int = 12
     substeps: int = 1
     blowup: float = 1e3
@@ -442,13 +443,16 @@ def _local_search(
     lines: list[ln.Line], errors: np.ndarray, pool: Sequence[ln.Line],
     score: Callable[[list[ln.Line]], np.ndarray], config: SelectionConfig, states: set[str],
 ) -> tuple[list[ln.Line], np.ndarray]:  # fmt: skip
-    """Vary the best lines term by term and ``score`` the variants: ``config.steps`` rounds.
+    """Vary the best lines term by term and ``score`` the variants, until the best lines have
+    all been varied (at most ``config.steps`` rounds).
 
     The lines varied in each round are the two simplest within ``tolerance`` of the best
-    simulation error and the best itself. A stand-in term that the derivative fit preferred is
-    dropped here, and a small term it could not see (a slow or weak effect) is added, as long
-    as the held-out simulation says so."""
+    simulation error and the best itself, each once: a line that enters the beam in the last
+    round is varied in the next (its own one-term-shorter variant may be the answer). A
+    stand-in term that the derivative fit preferred is dropped here, and a small term it could
+    not see (a slow or weak effect) is added, as long as the held-out simulation says so."""
     seen = {_key(line) for line in lines}
+    varied: set[frozenset[str]] = set()
     for _ in range(config.steps):
         finite = np.isfinite(errors)
         if not finite.any():
@@ -460,6 +464,10 @@ def _local_search(
             if e <= best * (1 + config.tolerance)
         )
         beam = dict.fromkeys([*(i for *_, i in ranked[:2]), ties.argmin(errors)])
+        beam = {i: None for i in beam if _key(lines[i]) not in varied}
+        if not beam:
+            break
+        varied.update(_key(lines[i]) for i in beam)
         new: list[ln.Line] = []
         for i in beam:
             for variant in _neighbours(lines[i], pool):
