@@ -463,8 +463,8 @@ def _local_search(
             for i, (line, e) in enumerate(zip(lines, errors, strict=True))
             if e <= best * (1 + config.tolerance)
         )
-        beam = dict.fromkeys([*(i for *_, i in ranked[:2]), ties.argmin(errors)])
-        beam = {i: None for i in beam if _key(lines[i]) not in varied}
+        best_lines = [*(i for *_, i in ranked[:2]), ties.argmin(errors)]
+        beam = dict.fromkeys(i for i in best_lines if _key(lines[i]) not in varied)
         if not beam:
             break
         varied.update(_key(lines[i]) for i in beam)
