@@ -24,9 +24,11 @@ simulation instead:
    simpler one on a tie.
 
 3. **The algebraic equations** (:func:`select_algebraic`), after the AE loop: each algebraic
-   variable the state equations use is chosen among its candidate lines by simulating the
-   held-out recording with that variable computed and the states it drives integrated, then
-   the choices join the closed model one at a time where they make it simulate better.
+   variable the state equations use is chosen among its candidate lines (with lines built from
+   products of the other algebraic variables' lines, as a power is built from voltages and
+   currents: :func:`_composed_lines`) by simulating the held-out recording with that variable
+   computed and the states it drives integrated; then the lines of each variable's Pareto
+   front join the closed model one at a time, where they make it simulate better.
 
 Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
 programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
@@ -60,11 +62,13 @@ import numpy as np
 from jaxdmd import interp, ties
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
+from jaxdmd.proposers.offline import evaluate
 from jaxdmd.search import (
     Equations,
     SearchState,
     _compile,
     compiled_lines,
+    cross_validated_losses,
     fit_problem,
     fold_fits,
     replace_state,
@@ -74,6 +78,10 @@ from jaxdmd.skeleton import Skeleton, SkeletonError
 from jaxdmd.ties import settled
 
 __all__ = ["SelectionConfig", "select_algebraic", "select_by_simulation", "simulate_host"]
+
+
+# terms of a line built from the other algebraic variables (:func:`_composed_lines`)
+COMPOSED_TERMS = 4
 
 
 @dataclass(frozen=True)
@@ -132,8 +140,9 @@ def _played(ds: Dataset, names: Sequence[str]) -> _Played:
 
 def _evaluate(program: interp.Program, args: list[np.ndarray], params: np.ndarray) -> np.ndarray:
     """Outputs ``[B, K]`` of a program at ``B`` points, each with its own parameter row."""
-    out = program.values(args, params)  # [B, K, B]
+    out = program.values(args, params)  # [B, K, B] ([B, K, 1] for a program of no variable)
     b = np.arange(params.shape[0])
+    out = np.broadcast_to(out, (*out.shape[:2], b.size))
     return out[b, :, b]
 
 
@@ -397,6 +406,89 @@ def _candidate_lines(
             out[lines[j].text] = lines[j]
             extra += 1
     return list(out.values())
+
+
+def _composed_lines(
+    state: SearchState, j: int, fit_choice: Equations, size: int = COMPOSED_TERMS
+) -> list[ln.Line]:
+    """Candidate lines of algebraic variable ``j`` built from products of the others.
+
+    Algebraic variables are often products of one another: a machine's electrical power is
+    ``v_d i_d + v_q i_q`` (plus its armature losses ``r_a (i_d^2 + i_q^2)``) and its reactive
+    power ``v_q i_d - v_d i_q``, where the voltages are projections of the terminal phasor and
+    the currents linear in the states. Written in the states alone, such a line is a sum of
+    products that the search has to assemble term by term and rarely does; written in the other
+    variables, it is two products. Here the pairwise products of the other variables' lines in
+    ``fit_choice`` (their fitted parameters written in as constants, so that each stands for its
+    variable as the model computes it) are the features, and for each number of terms up to
+    ``size`` (the constant counts as one) the subset with the least leave-one-recording-out
+    error on the loop's regressors (one fold where the problem has one group) becomes a line
+    with one parameter per term, in the states, inputs and boundary only: the closed model
+    needs nothing measured. Only products: a sum of other lines is already a line in the
+    states, and a single other line as a feature would be a stand-in that hides its terms. A
+    product that is not finite on the data is left out; nothing here knows what any variable
+    is. The lines are candidates; simulation chooses (:func:`select_algebraic`)."""
+    problem = state.problem
+    if problem.operator is not None:
+        return []
+    lines, mappings = ln.split_lines(fit_choice.source)
+    values = np.asarray(fit_choice.params, dtype=float)
+    others = [
+        _with_constants(line, values[list(m)])
+        for k, (line, m) in enumerate(zip(lines, mappings, strict=True))
+        if k != j
+    ]
+    data = {k: np.asarray(v, dtype=float) for k, v in problem.variables.items()}
+    target = np.asarray(problem.targets[j], dtype=float)
+    w = sample_weights(problem, j)
+    features: list[ast.expr] = []
+    columns: list[np.ndarray] = []
+    candidates = [
+        ast.BinOp(left=copy.deepcopy(a), op=ast.Mult(), right=copy.deepcopy(b))
+        for a, b in itertools.combinations_with_replacement(others, 2)
+    ]
+    for expr in candidates:
+        try:
+            with np.errstate(all="ignore"):
+                column = np.broadcast_to(evaluate(expr, data), target.shape).astype(float)
+        except (KeyError, ValueError, TypeError):
+            continue
+        if np.all(np.isfinite(column)) and np.std(column) > 0:
+            features.append(expr)
+            columns.append(column)
+    if not features:
+        return []
+    root = np.sqrt(w)
+    x = np.stack([np.ones_like(target), *columns], axis=1) * root[:, None]
+    y = target * root
+    groups = _folds(state)
+    folds = [groups == g for g in np.unique(groups)]
+    held_out = len(folds) > 1
+    gram = np.stack([x[f].T @ x[f] for f in folds])
+    cross = np.stack([x[f].T @ y[f] for f in folds])
+    yy = np.array([y[f] @ y[f] for f in folds])
+    out: list[ln.Line] = []
+    for k in range(1, min(size, x.shape[1]) + 1):  # the constant (column 0) counts as a term
+        subsets = np.array(list(itertools.combinations(range(x.shape[1]), k)))  # [S, k]
+        g_sub = gram[:, subsets[:, :, None], subsets[:, None, :]]  # [F, S, k, k]
+        c_sub = cross[:, subsets]  # [F, S, k]
+        g_fit = g_sub.sum(0) - g_sub if held_out else g_sub
+        c_fit = c_sub.sum(0) - c_sub if held_out else c_sub
+        ridge = 1e-10 * np.trace(g_fit, axis1=-2, axis2=-1)[..., None, None] + 1e-300
+        coef = np.linalg.solve(g_fit + ridge * np.eye(k), c_fit[..., None])[..., 0]
+        sse = (
+            yy[:, None]
+            - 2 * np.einsum("fsk,fsk->fs", coef, c_sub)
+            + np.einsum("fsk,fskl,fsl->fs", coef, g_sub, coef)
+        ).sum(0)
+        best = [int(i) for i in subsets[ties.argmin(sse)]]
+        terms = [
+            f"p[{n}]" if i == 0 else f"p[{n}] * ({ast.unparse(features[i - 1])})"
+            for n, i in enumerate(best)
+        ]
+        expr = ast.parse(" + ".join(terms), mode="eval").body
+        out.append(ln.renumbered(ln.Line(ast.fix_missing_locations(expr), len(terms))))
+    return out
 
 
 def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> list[ln.Line]:
@@ -853,6 +945,36 @@ def _closed_errors(
     return errors
 
 
+def _front(lines: Sequence[ln.Line], errors: np.ndarray, states: set[str]) -> list[ln.Line]:
+    """The Pareto front of candidate lines: by complexity, each line that simulates better
+    than every simpler one."""
+    front, best = [], np.inf
+    ranked = sorted(
+        (_complexity(line, states), settled(e), i)
+        for i, (line, e) in enumerate(zip(lines, errors, strict=True))
+        if np.isfinite(e)
+    )
+    for _, e, i in ranked:
+        if e < best:
+            front.append(lines[i])
+            best = e
+    return front
+
+
+def _simpler_and_fits(
+    state: SearchState, j: int, new: ln.Line, old: ln.Line, config: SelectionConfig,
+    states: set[str],
+) -> bool:  # fmt: skip
+    """Whether ``new`` is simpler than ``old`` and fits algebraic variable ``j`` (held out as
+    the selection holds out: recordings or time blocks) within ``tolerance`` of it. A closed
+    simulation is slow to see a small term of an algebraic line (an armature resistance in a
+    stator current); the variable's own held-out fit is not."""
+    if _complexity(new, states) >= _complexity(old, states):
+        return False
+    losses = cross_validated_losses(state, j, [ln.renumbered(new), ln.renumbered(old)])
+    return bool(losses[0] <= losses[1] * (1 + config.tolerance))
+
+
 def select_algebraic(
     ae_state: SearchState,
     fit_choice: Equations,
@@ -872,15 +994,24 @@ def select_algebraic(
     equations use is chosen here by simulation:
 
     1. **Each variable alone**: its candidate lines (the fit choice, its pruned variants, the
-       archive's best, then the local search in term space, whose pool adds the loop's most
-       frequent terms over all its equations) are fitted with each recording left out, and the
+       archive's best, the lines built from the other algebraic variables
+       (:func:`_composed_lines`), then the local search in term space, whose pool adds the
+       loop's most frequent terms over all its equations) are fitted with each recording left
+       out, and the
        held-out recording is simulated with that variable computed by the line and the states
        it drives integrated, every other channel played in (:func:`_closed_errors`). The
        simplest line within ``tolerance`` of the best is that variable's choice.
-    2. **Closed**: the choices join the fit choice one variable at a time, in the loop's
-       order, and each is kept only if the closed model (every state integrated, every
-       algebraic variable computed, fits held out: :func:`_closed_loro`) then simulates the
-       training recordings better by more than ``tolerance``.
+    2. **Closed**: one variable at a time, in the loop's order, the choice and every line of
+       the variable's Pareto front (the simplest line for each simulation error reached in
+       step 1) replace its current line (at first the fit choice) in the closed model (every
+       state integrated, every algebraic variable computed, fits held out:
+       :func:`_closed_loro`), and the training recordings are simulated. A line may replace
+       the current one if the closed model then simulates better by more than ``tolerance``,
+       or if it is simpler, simulates no worse and fits its variable on held-out data within
+       ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
+       ``tolerance`` of the best closed error, the simplest does. (Step 1 alone can prefer a
+       line with stand-in terms that helps while the other variables are played in; the
+       closed model tells them apart.)
 
     A variable the state equations do not use keeps its fit choice: it does not change how the
     model simulates. ``recordings`` are the training recordings (the measured states the
@@ -909,6 +1040,7 @@ def select_algebraic(
     # serve any of them
     shared = _shared_terms(archived, 2 * config.terms)
     picked: list[ln.Line] = []
+    fronts: dict[int, list[ln.Line]] = {}
     held = _held_out(ae_state, recordings, played_from)
     report: dict[str, object] = {"held_out": held.label, "equations": {}}
     for j, target in enumerate(contract.targets):
@@ -916,6 +1048,8 @@ def select_algebraic(
             picked.append(derived[j])
             continue
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
+        known = {line.text for line in lines}
+        lines += [c for c in _composed_lines(held.state, j, fit_choice) if c.text not in known]
 
         def score(new: list[ln.Line], j: int = j) -> np.ndarray:
             return _closed_errors(
@@ -931,8 +1065,10 @@ def select_algebraic(
             continue
         line, report["equations"][target] = _choose(lines, errors, config, states)  # type: ignore[index]
         picked.append(line)
-    # the chosen lines join the closed model one at a time, each kept only if the closed model
-    # then simulates the training recordings (fits held out) better by more than the tolerance
+        fronts[j] = _front(lines, errors, states)
+    # the variables' choices join the closed model one at a time: each line of the variable's
+    # front (and its choice) replaces the current line in turn, and the closed model simulates
+    # the training recordings (fits held out) with it
     fits: dict[tuple[int, str], np.ndarray | None] = {}
     by_fit = _closed_loro(
         held.state, derived, de, held.recordings, config, held.played_from, fits, held.windows
@@ -941,16 +1077,36 @@ def select_algebraic(
     current_lines, error = list(derived), by_fit
     changed: list[str] = []
     for j, target in enumerate(contract.targets):
-        if picked[j].text == current_lines[j].text:
+        options = {line.text: line for line in (picked[j], *fronts.get(j, ()))}
+        options.pop(current_lines[j].text, None)
+        if not options:
             continue
-        trial_lines = [*current_lines[:j], picked[j], *current_lines[j + 1 :]]
-        trial_error = _closed_loro(
-            held.state, trial_lines, de, held.recordings, config, held.played_from, fits,
-            held.windows,
-        )  # fmt: skip
-        report["equations"][target]["dae_nrmse"] = trial_error  # type: ignore[index]
-        if trial_error * (1 + config.tolerance) < error:
-            current_lines, error = trial_lines, trial_error
+        trials = []
+        for line in options.values():
+            trial_lines = [*current_lines[:j], line, *current_lines[j + 1 :]]
+            trial_error = _closed_loro(
+                held.state, trial_lines, de, held.recordings, config, held.played_from, fits,
+                held.windows,
+            )  # fmt: skip
+            trials.append((line, trial_lines, trial_error))
+        entry = report["equations"][target]  # type: ignore[index]
+        entry["closed"] = [{"line": line.text, "dae_nrmse": e} for line, _, e in trials]
+        entry["dae_nrmse"] = next(
+            (e for line, _, e in trials if line.text == picked[j].text), error
+        )
+        best = min([error, *(e for *_, e in trials)])
+        eligible = [
+            (line, lines_, e) for line, lines_, e in trials
+            if e <= best * (1 + config.tolerance) and (
+                e * (1 + config.tolerance) < error
+                or (e <= error and _simpler_and_fits(
+                    held.state, j, line, current_lines[j], config, states))
+            )
+        ]  # fmt: skip
+        if eligible:
+            _, current_lines, error = min(
+                eligible, key=lambda t: (_complexity(t[0], states), settled(t[2]))
+            )
             changed.append(target)
     report["dae_nrmse"] = error
     report["changed"] = changed

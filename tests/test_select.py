@@ -387,3 +387,59 @@ def test_the_simulation_nrmse_is_taken_over_time_for_every_series():
     assert np.allclose(err, expected, rtol=1e-12)
     three = _nrmse(simulated[:, 0], measured[:, 0])  # [recordings, states, n]: as before
     assert np.array_equal(three, err[:, 0])
+
+
+def test_an_algebraic_variable_built_from_the_others_is_written_in_their_lines():
+    """Hidden in the data: w = u v + 0.3 v^2 (a power from a voltage and a current, and a loss),
+    where u and v are linear in the states a and b. In the states alone w is a sum of three
+    products that the fit choice does not hold; built from the others' lines it is two terms.
+    The composition must find exactly those two, in the states only (the closed model has
+    nothing measured to play in), with gains near 1 and 0.3."""
+    from types import SimpleNamespace
+
+    from jaxdmd.proposers.offline import evaluate
+    from jaxdmd.select import _composed_lines, _with_constants
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 10.0, 600)
+    groups = np.repeat(np.arange(3), 200)
+    a = np.sin(0.7 * t) + 0.3 * np.cos(2.1 * t + groups)
+    b = 0.5 * np.cos(1.3 * t) - 0.2 * np.sin(0.4 * t + groups)
+    u = 2.0 * a - b
+    v = a + 3.0 * b
+    w = u * v + 0.3 * v * v + 1e-3 * rng.normal(size=t.shape)
+    problem = SimpleNamespace(
+        variables={"a": a, "b": b, "u": u, "v": v, "w": w},
+        targets=np.stack([u, v, w]),
+        weights=None,
+        operator=None,
+        groups=groups,
+    )
+    source = (
+        "def algebraic(a, b, p):\n"
+        "    u_ = p[0] * a + p[1] * b\n"
+        "    v_ = p[2] * a + p[3] * b\n"
+        "    w_ = p[4] * a + p[5] * b + p[6] * a * b\n"
+        "    return u_, v_, w_\n"
+    )
+    fit_choice = search.Equations(
+        contract=None, source=source, params=(2.0, -1.0, 1.0, 3.0, 0.0, 0.0, 0.0),  # type: ignore[arg-type]
+        losses=(0.0, 0.0, 1.0), score=0.0,
+    )  # fmt: skip
+    lines = _composed_lines(SimpleNamespace(problem=problem), 2, fit_choice)  # type: ignore[arg-type]
+    two = next(line for line in lines if line.n_params == 2)
+    assert two.variables() == {"a", "b"}, two.text  # in the states only
+    data = {"a": a, "b": b}
+    x = np.stack(
+        [evaluate(_with_constants(two, np.eye(2)[k]), data) for k in range(2)], axis=1
+    )
+    coef, *_ = np.linalg.lstsq(x, w, rcond=None)
+    assert sorted(np.round(coef, 2)) == [0.3, 1.0], (two.text, coef)
+    assert np.std(w - x @ coef) < 2e-3
+    # the line in the states the fit choice holds is far off
+    three = np.stack([a, b, a * b], axis=1)
+    rest = w - three @ np.linalg.lstsq(three, w, rcond=None)[0]
+    assert np.std(rest) > 50 * np.std(w - x @ coef)
+    # every candidate is a sum of products of the others' lines (and perhaps a constant)
+    assert all(line.variables() <= {"a", "b"} for line in lines)
+    assert all(line.n_params == k + 1 for k, line in enumerate(lines))
