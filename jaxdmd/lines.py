@@ -222,7 +222,9 @@ def inlined(expr: ast.expr, env: dict[str, ast.expr]) -> ast.expr:
 
 
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
-    """The expression with fitted parameter values in place of ``p[i]`` (for readable output)."""
+    """The expression with fitted parameter values in place of ``p[i]`` (for readable output);
+    the line's own float constants (a line built from other lines carries their fitted
+    parameters as constants) are shown to the same number of significant digits."""
 
     class _Sub(ast.NodeTransformer):
         def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
@@ -230,6 +232,11 @@ def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) 
             if index is None:
                 return self.generic_visit(node)
             return ast.Constant(float(f"{params[index]:.{digits}g}"))
+
+        def visit_Constant(self, node: ast.Constant) -> ast.expr:
+            if isinstance(node.value, float):
+                return ast.Constant(float(f"{node.value:.{digits}g}"))
+            return node
 
     new = _Sub().visit(copy.deepcopy(expr))
     return ast.unparse(ast.fix_missing_locations(new))
