@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import subprocess
@@ -123,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         parser.error(f"{args.source} has no checkpoints for (generator, seed) {missing}")
     todo = [p for p in pairs if not (args.out / f"seed{p[1]}/gen{p[0]}/summary.json").exists()]
-    env = table1.child_environment(dict(__import__("os").environ), args.jobs)
+    env = table1.child_environment(dict(os.environ), args.jobs)
 
     def work(pair: tuple[int, int]) -> None:
         gen, seed = pair

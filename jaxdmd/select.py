@@ -62,7 +62,7 @@ import numpy as np
 from jaxdmd import interp, ties
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
-from jaxdmd.proposers.offline import evaluate
+from jaxdmd.proposers.offline import evaluate, subset_errors
 from jaxdmd.search import (
     Equations,
     SearchState,
@@ -463,24 +463,9 @@ def _composed_lines(
     y = target * root
     groups = _folds(state)
     folds = [groups == g for g in np.unique(groups)]
-    held_out = len(folds) > 1
-    gram = np.stack([x[f].T @ x[f] for f in folds])
-    cross = np.stack([x[f].T @ y[f] for f in folds])
-    yy = np.array([y[f] @ y[f] for f in folds])
     out: list[ln.Line] = []
-    for k in range(1, min(size, x.shape[1]) + 1):  # the constant (column 0) counts as a term
-        subsets = np.array(list(itertools.combinations(range(x.shape[1]), k)))  # [S, k]
-        g_sub = gram[:, subsets[:, :, None], subsets[:, None, :]]  # [F, S, k, k]
-        c_sub = cross[:, subsets]  # [F, S, k]
-        g_fit = g_sub.sum(0) - g_sub if held_out else g_sub
-        c_fit = c_sub.sum(0) - c_sub if held_out else c_sub
-        ridge = 1e-10 * np.trace(g_fit, axis1=-2, axis2=-1)[..., None, None] + 1e-300
-        coef = np.linalg.solve(g_fit + ridge * np.eye(k), c_fit[..., None])[..., 0]
-        sse = (
-            yy[:, None]
-            - 2 * np.einsum("fsk,fsk->fs", coef, c_sub)
-            + np.einsum("fsk,fskl,fsl->fs", coef, g_sub, coef)
-        ).sum(0)
+    # the constant (column 0) counts as a term
+    for subsets, sse in subset_errors(x, y, folds, min(size, x.shape[1])):
         best = [int(i) for i in subsets[ties.argmin(sse)]]
         terms = [
             f"p[{n}]" if i == 0 else f"p[{n}] * ({ast.unparse(features[i - 1])})"
@@ -997,10 +982,10 @@ def select_algebraic(
        archive's best, the lines built from the other algebraic variables
        (:func:`_composed_lines`), then the local search in term space, whose pool adds the
        loop's most frequent terms over all its equations) are fitted with each recording left
-       out, and the
-       held-out recording is simulated with that variable computed by the line and the states
-       it drives integrated, every other channel played in (:func:`_closed_errors`). The
-       simplest line within ``tolerance`` of the best is that variable's choice.
+       out, and the held-out recording is simulated with that variable computed by the line
+       and the states it drives integrated, every other channel played in
+       (:func:`_closed_errors`). The simplest line within ``tolerance`` of the best is that
+       variable's choice.
     2. **Closed**: one variable at a time, in the loop's order, the choice and every line of
        the variable's Pareto front (the simplest line for each simulation error reached in
        step 1) replace its current line (at first the fit choice) in the closed model (every

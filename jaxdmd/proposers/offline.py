@@ -253,6 +253,36 @@ def term_pool(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> 
     return list(dict.fromkeys(pool))
 
 
+def subset_errors(
+    x: np.ndarray, y: np.ndarray, folds: Sequence[np.ndarray], max_size: int
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every subset of the columns of ``x`` [n, B] as regressors of ``y`` [n], by size: for
+    k = 1 .. ``max_size``, the subsets ``[S, k]`` and their held-out sums of squared errors
+    ``[S]`` (least squares with a tiny ridge, fitted with each fold of ``folds``, boolean masks,
+    left out and scored on it; with one fold, fitted and scored on it). Exhaustive, so for a
+    few dozen columns and small k."""
+    gram = np.stack([x[f].T @ x[f] for f in folds])  # [F, B, B]
+    cross = np.stack([x[f].T @ y[f] for f in folds])  # [F, B]
+    yy = np.array([y[f] @ y[f] for f in folds])
+    held_out = len(folds) > 1
+    out = []
+    for k in range(1, max_size + 1):
+        subsets = np.array(list(itertools.combinations(range(x.shape[1]), k)))  # [S, k]
+        g_sub = gram[:, subsets[:, :, None], subsets[:, None, :]]  # [F, S, k, k]
+        c_sub = cross[:, subsets]  # [F, S, k]
+        g_fit = g_sub.sum(0) - g_sub if held_out else g_sub
+        c_fit = c_sub.sum(0) - c_sub if held_out else c_sub
+        ridge = 1e-10 * np.trace(g_fit, axis1=-2, axis2=-1)[..., None, None] + 1e-300
+        coef = np.linalg.solve(g_fit + ridge * np.eye(k), c_fit[..., None])[..., 0]
+        sse = (
+            yy[:, None]
+            - 2 * np.einsum("fsk,fsk->fs", coef, c_sub)
+            + np.einsum("fsk,fskl,fsl->fs", coef, g_sub, coef)
+        ).sum(0)
+        out.append((subsets, sse))
+    return out
+
+
 # ----------------------------------------------------------------------------------------------
 # the proposer
 
@@ -489,27 +519,9 @@ class OfflineProposer:
             if self.groups is None
             else [self.groups == g for g in np.unique(self.groups)]
         )
-        gram = np.stack([x[f].T @ x[f] for f in folds])  # [F, B, B]
-        cross = np.stack([x[f].T @ y[f] for f in folds])  # [F, B]
-        yy = np.array([y[f] @ y[f] for f in folds])
-        held_out = self.groups is not None
-        best: list[tuple[float, tuple[int, ...]]] = []
-        for k in range(1, min(self.config.subset_size, len(names)) + 1):
-            subsets = np.array(list(itertools.combinations(range(len(names)), k)))  # [S, k]
-            g_sub = gram[:, subsets[:, :, None], subsets[:, None, :]]  # [F, S, k, k]
-            c_sub = cross[:, subsets]  # [F, S, k]
-            g_fit = g_sub.sum(0) - g_sub if held_out else g_sub
-            c_fit = c_sub.sum(0) - c_sub if held_out else c_sub
-            ridge = 1e-10 * np.trace(g_fit, axis1=-2, axis2=-1)[..., None, None] + 1e-300
-            coef = np.linalg.solve(g_fit + ridge * np.eye(k), c_fit[..., None])[..., 0]
-            sse = (
-                yy[:, None]
-                - 2 * np.einsum("fsk,fsk->fs", coef, c_sub)
-                + np.einsum("fsk,fskl,fsl->fs", coef, g_sub, coef)
-            ).sum(0)
-            best.append((sse, subsets))
-        bar = min(float(sse.min()) for sse, _ in best) * (1 + self.config.min_relative_gain)
-        for sse, subsets in best:  # by size: the first whose best is within the bar
+        best = subset_errors(x, y, folds, min(self.config.subset_size, len(names)))
+        bar = min(float(sse.min()) for _, sse in best) * (1 + self.config.min_relative_gain)
+        for subsets, sse in best:  # by size: the first whose best is within the bar
             near = np.flatnonzero(sse <= bar)
             if near.size:
                 return [names[i] for i in subsets[int(rng.choice(near))]]
