@@ -45,9 +45,9 @@ from jaxdmd.problems import de_problem
 from jaxdmd.proposers import Sample
 from jaxdmd.proposers.offline import (
     OfflineProposer,
-    _wrap,
     parse_equations,
     term_pool,
+    wrap,
 )
 from jaxdmd.report import report_markdown, write_report
 from jaxdmd.rollout import Block, RolloutResult, as_block, fault_window, metrics, rollout
@@ -983,7 +983,7 @@ def _offer(
                 continue
             line = new_lines[j]
             extra = " + ".join(
-                f"p[{line.n_params + i}]" + ("" if t == "1" else f" * {_wrap(t)}")
+                f"p[{line.n_params + i}]" + ("" if t == "1" else f" * {wrap(t)}")
                 for i, t in enumerate(terms)
             )
             expr = ast.parse(f"{line.text} + {extra}", mode="eval").body

@@ -62,7 +62,7 @@ import numpy as np
 from jaxdmd import interp, ties
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
-from jaxdmd.proposers.offline import evaluate, subset_errors
+from jaxdmd.proposers.offline import building_blocks, evaluate, subset_errors, wrap
 from jaxdmd.search import (
     Equations,
     SearchState,
@@ -408,6 +408,46 @@ def _candidate_lines(
     return list(out.values())
 
 
+def _best_subset_lines(
+    state: SearchState, j: int, features: Sequence[str], size: int
+) -> list[ln.Line]:
+    """For each number of terms up to ``size`` (a constant counts as one), the subset of
+    ``features`` (expressions, each written as it follows ``p[n] *``) and the constant with
+    the least leave-one-recording-out error of algebraic variable ``j`` on the loop's
+    regressors (one fold where the problem has one group), as a line with one parameter per
+    term. A feature that is not finite or is constant on the data is left out."""
+    problem = state.problem
+    data = {k: np.asarray(v, dtype=float) for k, v in problem.variables.items()}
+    target = np.asarray(problem.targets[j], dtype=float)
+    kept: list[str] = []
+    columns: list[np.ndarray] = []
+    for text in features:
+        try:
+            with np.errstate(all="ignore"):
+                expr = ast.parse(text, mode="eval").body
+                column = np.broadcast_to(evaluate(expr, data), target.shape).astype(float)
+        except (KeyError, ValueError, TypeError, ZeroDivisionError):
+            continue
+        if np.all(np.isfinite(column)) and np.std(column) > 0:
+            kept.append(text)
+            columns.append(column)
+    if not kept:
+        return []
+    root = np.sqrt(sample_weights(problem, j))
+    x = np.stack([np.ones_like(target), *columns], axis=1) * root[:, None]
+    y = target * root
+    groups = _folds(state)
+    folds = [groups == g for g in np.unique(groups)]
+    out: list[ln.Line] = []
+    # the constant (column 0) counts as a term
+    for subsets, sse in subset_errors(x, y, folds, min(size, x.shape[1])):
+        best = [int(i) for i in subsets[ties.argmin(sse)]]
+        terms = [f"p[{n}]" if i == 0 else f"p[{n}] * {kept[i - 1]}" for n, i in enumerate(best)]
+        expr = ast.parse(" + ".join(terms), mode="eval").body
+        out.append(ln.renumbered(ln.Line(ast.fix_missing_locations(expr), len(terms))))
+    return out
+
+
 def _composed_lines(
     state: SearchState, j: int, fit_choice: Equations, size: int = COMPOSED_TERMS
 ) -> list[ln.Line]:
@@ -420,16 +460,12 @@ def _composed_lines(
     products that the search has to assemble term by term and rarely does; written in the other
     variables, it is two products. Here the pairwise products of the other variables' lines in
     ``fit_choice`` (their fitted parameters written in as constants, so that each stands for its
-    variable as the model computes it) are the features, and for each number of terms up to
-    ``size`` (the constant counts as one) the subset with the least leave-one-recording-out
-    error on the loop's regressors (one fold where the problem has one group) becomes a line
-    with one parameter per term, in the states, inputs and boundary only: the closed model
-    needs nothing measured. Only products: a sum of other lines is already a line in the
-    states, and a single other line as a feature would be a stand-in that hides its terms. A
-    product that is not finite on the data is left out; nothing here knows what any variable
+    variable as the model computes it) are the features of :func:`_best_subset_lines`: lines in
+    the states, inputs and boundary only, so the closed model needs nothing measured. Only
+    products: a sum of other lines is already a line in the states, and a single other line as
+    a feature would be a stand-in that hides its terms. Nothing here knows what any variable
     is. The lines are candidates; simulation chooses (:func:`select_algebraic`)."""
-    problem = state.problem
-    if problem.operator is not None:
+    if state.problem.operator is not None:
         return []
     lines, mappings = ln.split_lines(fit_choice.source)
     values = np.asarray(fit_choice.params, dtype=float)
@@ -438,42 +474,49 @@ def _composed_lines(
         for k, (line, m) in enumerate(zip(lines, mappings, strict=True))
         if k != j
     ]
-    data = {k: np.asarray(v, dtype=float) for k, v in problem.variables.items()}
-    target = np.asarray(problem.targets[j], dtype=float)
-    w = sample_weights(problem, j)
-    features: list[ast.expr] = []
-    columns: list[np.ndarray] = []
-    candidates = [
-        ast.BinOp(left=copy.deepcopy(a), op=ast.Mult(), right=copy.deepcopy(b))
+    products = [
+        f"({ast.unparse(ast.BinOp(left=a, op=ast.Mult(), right=b))})"
         for a, b in itertools.combinations_with_replacement(others, 2)
     ]
-    for expr in candidates:
+    return _best_subset_lines(state, j, products, size)
+
+
+def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list[ln.Line]:
+    """Candidate lines of algebraic variable ``j`` from the best subsets of the level-one
+    building blocks (each variable or its deviation from 1, sines and cosines of angle
+    differences, the boundary phasor's projections: :func:`jaxdmd.proposers.offline.
+    building_blocks`), by held-out fit (:func:`_best_subset_lines`).
+
+    The AE loop scores a candidate by all its equations at once, so a line that fits one
+    variable better on held-out data but the training data a little worse than the loop's
+    many-term line rarely enters the archive: a stator current with x'_d small is linear in
+    two or four blocks (``e''_d`` and ``V sin(delta - theta)``, and the armature resistance's
+    ``e'_q`` and ``V cos(delta - theta)``), while the archive may hold only a linear fit in
+    every state. The exhaustive subset search over the blocks writes such lines directly, as
+    the offline proposer's subset edit does during the search, up to ``size`` terms. A block
+    that does not vary within any recording (an input held constant in each) is left out: on
+    held-out recordings it fits the recordings' offsets, and a line built from it is a
+    stand-in for whatever differs between them (measured on the benchmark: the field voltage
+    took the armature resistance's place in a stator current, test R^2 0.99997 -> 0.992)."""
+    if state.problem.operator is not None:
+        return []
+    contract = state.contract
+    variables = [*contract.states, *contract.library]
+    data = {k: np.asarray(v, dtype=float) for k, v in state.problem.variables.items()}
+    blocks, angles = building_blocks(variables, data)
+    groups = _folds(state)
+    names = []
+    for name in dict.fromkeys([*angles, *blocks]):
         try:
             with np.errstate(all="ignore"):
-                column = np.broadcast_to(evaluate(expr, data), target.shape).astype(float)
-        except (KeyError, ValueError, TypeError):
+                column = np.broadcast_to(
+                    evaluate(ast.parse(name, mode="eval").body, data), groups.shape
+                )
+        except (KeyError, ValueError, TypeError, ZeroDivisionError):
             continue
-        if np.all(np.isfinite(column)) and np.std(column) > 0:
-            features.append(expr)
-            columns.append(column)
-    if not features:
-        return []
-    root = np.sqrt(w)
-    x = np.stack([np.ones_like(target), *columns], axis=1) * root[:, None]
-    y = target * root
-    groups = _folds(state)
-    folds = [groups == g for g in np.unique(groups)]
-    out: list[ln.Line] = []
-    # the constant (column 0) counts as a term
-    for subsets, sse in subset_errors(x, y, folds, min(size, x.shape[1])):
-        best = [int(i) for i in subsets[ties.argmin(sse)]]
-        terms = [
-            f"p[{n}]" if i == 0 else f"p[{n}] * ({ast.unparse(features[i - 1])})"
-            for n, i in enumerate(best)
-        ]
-        expr = ast.parse(" + ".join(terms), mode="eval").body
-        out.append(ln.renumbered(ln.Line(ast.fix_missing_locations(expr), len(terms))))
-    return out
+        if any(np.std(column[groups == g]) > 0 for g in np.unique(groups)):
+            names.append(wrap(name))
+    return _best_subset_lines(state, j, names, size)
 
 
 def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> list[ln.Line]:
@@ -960,6 +1003,53 @@ def _simpler_and_fits(
     return bool(losses[0] <= losses[1] * (1 + config.tolerance))
 
 
+def _by_held_out_fit(
+    ae_state: SearchState, held: SearchState, derived: list[ln.Line], fit_choice: Equations,
+    used: set[str], config: SelectionConfig, states: set[str], report: dict[str, object],
+) -> tuple[list[ln.Line], Equations]:  # fmt: skip
+    """The lines of the algebraic variables the state equations do not use, chosen by how they
+    fit their variable on held-out data (recordings or time blocks: ``held``'s folds) among the
+    fit choice and the building blocks' best subsets (:func:`_block_lines`): the simplest
+    within ``tolerance`` of the best. Such a variable does not drive a state, so no simulation
+    tells its lines apart; but the lines built from it (:func:`_composed_lines`: a power from a
+    voltage and a current) carry its errors into the closed model. Returns the lines (the
+    others as derived) and the equations the composed lines are built from (``fit_choice``
+    where nothing changed, else all lines fitted on every recording). The variables changed go
+    to ``report["by_fit"]``, each one's candidates and choice to ``report["equations"]``."""
+    lines = list(derived)
+    changed: list[str] = []
+    for j, target in enumerate(ae_state.contract.targets):
+        if target in used:
+            continue
+        known = {derived[j].text}
+        options = [derived[j], *(c for c in _block_lines(held, j) if c.text not in known)]
+        losses = cross_validated_losses(held, j, [ln.renumbered(c) for c in options])
+        if not np.isfinite(np.min(losses)):
+            continue
+        bound = float(np.min(losses)) * (1 + config.tolerance)
+        eligible = [i for i, loss in enumerate(losses) if loss <= bound]
+        best = min(eligible, key=lambda i: (_complexity(options[i], states), settled(losses[i])))
+        report["equations"][target] = {  # type: ignore[index]
+            "by": "held-out fit (the state equations do not use it)",
+            "candidates": [
+                {"line": c.text, "held_out_nmse": float(loss)}
+                for c, loss in zip(options, losses, strict=True)
+            ],
+            "chosen": options[best].text,
+        }
+        if best != 0:
+            lines[j] = options[best]
+            changed.append(target)
+    report["by_fit"] = changed
+    if not changed:
+        return lines, fit_choice
+    basis = _assemble(ae_state, lines)
+    if basis is None:
+        report["by_fit"] = []
+        return list(derived), fit_choice
+    return lines, basis
+
+
 def select_algebraic(
     ae_state: SearchState,
     fit_choice: Equations,
@@ -996,14 +1086,20 @@ def select_algebraic(
        ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
        ``tolerance`` of the best closed error, the simplest does. (Step 1 alone can prefer a
        line with stand-in terms that helps while the other variables are played in; the
-       closed model tells them apart.)
+       closed model tells them apart.) Where another variable's line has changed by then, the
+       lines built from the others' lines (:func:`_composed_lines`) are built again from the
+       lines the closed model now has and join the options.
 
-    A variable the state equations do not use keeps its fit choice: it does not change how the
-    model simulates. ``recordings`` are the training recordings (the measured states the
-    rollouts are compared with), in the order of the AE problem's groups; ``played_from`` the
-    recordings the other channels and the initial states are played in from (default: the
-    same; :func:`jaxdmd.pipeline.discover` passes the AE loop's regressors, the estimated
-    states). With one recording, its time blocks are held out instead (:func:`_held_out`).
+    A variable the state equations do not use is not simulated: its line is the simplest within
+    ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best
+    subsets (:func:`_by_held_out_fit`), chosen first, since the lines built from it carry its
+    errors into the closed model.
+
+    ``recordings`` are the training recordings (the measured states the rollouts are compared
+    with), in the order of the AE problem's groups; ``played_from`` the recordings the other
+    channels and the initial states are played in from (default: the same;
+    :func:`jaxdmd.pipeline.discover` passes the AE loop's regressors, the estimated states).
+    With one recording, its time blocks are held out instead (:func:`_held_out`).
     Returns the equations (parameters fitted on all recordings) and a report: what was held
     out (``held_out``), per variable the candidates, the Pareto front, the choice and the
     closed error with it; the closed error of the fit choice and of the result; the variables
@@ -1028,13 +1124,18 @@ def select_algebraic(
     fronts: dict[int, list[ln.Line]] = {}
     held = _held_out(ae_state, recordings, played_from)
     report: dict[str, object] = {"held_out": held.label, "equations": {}}
+    derived, basis = _by_held_out_fit(ae_state, held.state, derived, fit_choice, used, config,
+                                      states, report)  # fmt: skip
     for j, target in enumerate(contract.targets):
         if target not in used:
             picked.append(derived[j])
             continue
         lines = _candidate_lines(archived, j, derived[j], config.candidates)
         known = {line.text for line in lines}
-        lines += [c for c in _composed_lines(held.state, j, fit_choice) if c.text not in known]
+        for c in [*_block_lines(held.state, j), *_composed_lines(held.state, j, basis)]:
+            if c.text not in known:
+                known.add(c.text)
+                lines.append(c)
 
         def score(new: list[ln.Line], j: int = j) -> np.ndarray:
             return _closed_errors(
@@ -1060,9 +1161,16 @@ def select_algebraic(
     )
     report["dae_nrmse_fit_choice"] = by_fit
     current_lines, error = list(derived), by_fit
-    changed: list[str] = []
+    changed: list[str] = list(report.pop("by_fit", []))  # type: ignore[call-overload]
     for j, target in enumerate(contract.targets):
         options = {line.text: line for line in (picked[j], *fronts.get(j, ()))}
+        if target in used and any(
+            current_lines[k].text != derived[k].text for k in range(len(derived)) if k != j
+        ):
+            # the lines built from the others as the closed model now has them
+            now = _assemble(ae_state, current_lines)
+            for line in _composed_lines(held.state, j, now) if now is not None else ():
+                options.setdefault(line.text, line)
         options.pop(current_lines[j].text, None)
         if not options:
             continue

@@ -153,7 +153,7 @@ def _strip(node: ast.expr) -> str | None:
         top = _strip(node.left)
         if top is None:
             return None
-        return ast.unparse(node.right) if top == "1" else f"{_wrap(top)} / {_wrap_den(node.right)}"
+        return ast.unparse(node.right) if top == "1" else f"{wrap(top)} / {_wrap_den(node.right)}"
     factors = _factors(node)
     params = [f for f in factors if _is_param(f)]
     rest = [f for f in factors if not _is_param(f)]
@@ -162,10 +162,11 @@ def _strip(node: ast.expr) -> str | None:
     rest = [f for f in rest if not isinstance(f, ast.Constant)]
     if not rest:
         return "1"
-    return " * ".join(_wrap(ast.unparse(f)) for f in rest)
+    return " * ".join(wrap(ast.unparse(f)) for f in rest)
 
 
-def _wrap(text: str) -> str:
+def wrap(text: str) -> str:
+    """``text`` in parentheses where it is a sum or difference (a factor of a product)."""
     tree = ast.parse(text, mode="eval").body
     if isinstance(tree, ast.BinOp) and isinstance(tree.op, ast.Add | ast.Sub):
         return f"({text})"
@@ -188,7 +189,7 @@ class Equation:
         if self.opaque is not None:
             return self.opaque
         parts = [
-            f"p[{k}]" if term == "1" else f"p[{k}] * {_wrap(term)}"
+            f"p[{k}]" if term == "1" else f"p[{k}] * {wrap(term)}"
             for k, term in enumerate(self.terms)
         ]
         expr = ast.parse(" + ".join(parts) if parts else "0.0 * p[0]", mode="eval").body
@@ -248,7 +249,7 @@ def term_pool(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> 
     blocks, angles = building_blocks(variables, data)
     pool = ["1", *angles, *blocks]
     pool += [
-        f"{_wrap(a)} * {_wrap(b)}" for a, b in itertools.combinations_with_replacement(blocks, 2)
+        f"{wrap(a)} * {wrap(b)}" for a, b in itertools.combinations_with_replacement(blocks, 2)
     ]
     return list(dict.fromkeys(pool))
 
