@@ -461,6 +461,49 @@ def test_a_current_that_is_two_building_blocks_is_written_as_them():
     assert all(line.variables() <= known for line in lines)
 
 
+def test_an_algebraic_variable_the_state_equations_do_not_use_gets_its_best_held_out_line():
+    """Hidden in the data: z = 0.5 u - 2 theta, an algebraic channel the state equations do
+    not use (no simulation can judge its line) but lines may be built from. Its fit choice is
+    the noisy state x and a constant; it must get the two blocks u and theta by held-out fit,
+    with gains near 0.5 and -2, and the equations lines are built from must carry them. The
+    line of the variable the state equations use is left to the simulation."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.select import SelectionConfig, _by_held_out_fit, _held_out, _terms
+
+    recordings = []
+    for ds in tracking(3, 0.01, 20.0, 1001, (0.2, 0.05, 0.3, 0.1)):
+        channels = {n: np.asarray(ds[n]) for n in ("x", "u", "theta", "y")}
+        channels["z"] = 0.5 * channels["u"] - 2.0 * channels["theta"]
+        roles = {"x": "state", "u": "input", "theta": "input", "y": "algebraic",
+                 "z": "algebraic"}  # fmt: skip
+        recordings.append(
+            Dataset.create(np.asarray(ds.t), channels, roles).with_estimated_derivatives()
+        )
+    _, contract = de_problem(recordings, matched=True, library=("u", "y", "z", "theta"))
+    problem, ae_contract = ae_problem(recordings, contract)
+    assert ae_contract.targets == ("y", "z")
+    state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
+    stand_ins = ["p[0] * u", "p[0] * x + p[1]"]
+    derived = [ln.Line(ast.parse(text, mode="eval").body, text.count("p[")) for text in stand_ins]
+    fit_choice = search.Equations(
+        ae_contract,
+        ln.assemble("algebraic", ae_contract.arguments, derived, ae_contract.outputs),
+        (1.0, 1.0, 1.0), (0.0, 0.0), 0.0,
+    )  # fmt: skip
+    report: dict[str, object] = {"equations": {}}
+    held = _held_out(state, recordings)
+    lines, basis = _by_held_out_fit(
+        state, held.state, derived, fit_choice, {"y"}, SelectionConfig(), {"x"}, report
+    )
+    assert lines[0].text == derived[0].text
+    assert _terms(lines[1]) == {"p * u", "p * theta"}, lines[1].text
+    assert report["by_fit"] == ["z"]
+    z_line, mapping = ln.split_lines(basis.source)[0][1], ln.split_lines(basis.source)[1][1]
+    assert _terms(z_line) == {"p * u", "p * theta"}
+    gains = sorted(np.round(np.asarray(basis.params)[list(mapping)], 2))
+    assert gains == [-2.0, 0.5], gains
+
+
 def test_an_algebraic_variable_built_from_the_others_is_written_in_their_lines():
     """Hidden in the data: w = u v + 0.3 v^2 (a power from a voltage and a current, and a loss),
     where u and v are linear in the states a and b. In the states alone w is a sum of three
