@@ -496,8 +496,7 @@ def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list
     the offline proposer's subset edit does during the search, up to ``size`` terms. A block
     that does not vary within any recording (an input held constant in each) is left out: on
     held-out recordings it fits the recordings' offsets, and a line built from it is a
-    stand-in for whatever differs between them (measured on the benchmark: the field voltage
-    took the armature resistance's place in a stator current, test R^2 0.99997 -> 0.992)."""
+    stand-in for whatever differs between them."""
     if state.problem.operator is not None:
         return []
     contract = state.contract
