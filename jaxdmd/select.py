@@ -409,16 +409,19 @@ def _candidate_lines(
 
 
 def _best_subset_lines(
-    state: SearchState, j: int, features: Sequence[str], size: int
+    state: SearchState, j: int, features: Sequence[str], size: int, *, within: bool = False
 ) -> list[ln.Line]:
     """For each number of terms up to ``size`` (a constant counts as one), the subset of
     ``features`` (expressions, each written as it follows ``p[n] *``) and the constant with
     the least leave-one-recording-out error of algebraic variable ``j`` on the loop's
     regressors (one fold where the problem has one group), as a line with one parameter per
-    term. A feature that is not finite or is constant on the data is left out."""
+    term. A feature that is not finite or is constant on the data is left out; with
+    ``within``, also one that is constant within every fold."""
     problem = state.problem
     data = {k: np.asarray(v, dtype=float) for k, v in problem.variables.items()}
     target = np.asarray(problem.targets[j], dtype=float)
+    groups = _folds(state)
+    folds = [groups == g for g in np.unique(groups)]
     kept: list[str] = []
     columns: list[np.ndarray] = []
     for text in features:
@@ -428,7 +431,8 @@ def _best_subset_lines(
                 column = np.broadcast_to(evaluate(expr, data), target.shape).astype(float)
         except (KeyError, ValueError, TypeError, ZeroDivisionError):
             continue
-        if np.all(np.isfinite(column)) and np.std(column) > 0:
+        varies = any(np.std(column[f]) > 0 for f in folds) if within else np.std(column) > 0
+        if np.all(np.isfinite(column)) and varies:
             kept.append(text)
             columns.append(column)
     if not kept:
@@ -436,8 +440,6 @@ def _best_subset_lines(
     root = np.sqrt(sample_weights(problem, j))
     x = np.stack([np.ones_like(target), *columns], axis=1) * root[:, None]
     y = target * root
-    groups = _folds(state)
-    folds = [groups == g for g in np.unique(groups)]
     out: list[ln.Line] = []
     # the constant (column 0) counts as a term
     for subsets, sse in subset_errors(x, y, folds, min(size, x.shape[1])):
@@ -500,22 +502,10 @@ def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list
     if state.problem.operator is not None:
         return []
     contract = state.contract
-    variables = [*contract.states, *contract.library]
     data = {k: np.asarray(v, dtype=float) for k, v in state.problem.variables.items()}
-    blocks, angles = building_blocks(variables, data)
-    groups = _folds(state)
-    names = []
-    for name in dict.fromkeys([*angles, *blocks]):
-        try:
-            with np.errstate(all="ignore"):
-                column = np.broadcast_to(
-                    evaluate(ast.parse(name, mode="eval").body, data), groups.shape
-                )
-        except (KeyError, ValueError, TypeError, ZeroDivisionError):
-            continue
-        if any(np.std(column[groups == g]) > 0 for g in np.unique(groups)):
-            names.append(wrap(name))
-    return _best_subset_lines(state, j, names, size)
+    blocks, angles = building_blocks([*contract.states, *contract.library], data)
+    names = [wrap(name) for name in dict.fromkeys([*angles, *blocks])]
+    return _best_subset_lines(state, j, names, size, within=True)
 
 
 def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> list[ln.Line]:
@@ -1005,16 +995,16 @@ def _simpler_and_fits(
 def _by_held_out_fit(
     ae_state: SearchState, held: SearchState, derived: list[ln.Line], fit_choice: Equations,
     used: set[str], config: SelectionConfig, states: set[str], report: dict[str, object],
-) -> tuple[list[ln.Line], Equations]:  # fmt: skip
+) -> tuple[list[ln.Line], Equations, list[str]]:  # fmt: skip
     """The lines of the algebraic variables the state equations do not use, chosen by how they
     fit their variable on held-out data (recordings or time blocks: ``held``'s folds) among the
     fit choice and the building blocks' best subsets (:func:`_block_lines`): the simplest
     within ``tolerance`` of the best. Such a variable does not drive a state, so no simulation
     tells its lines apart; but the lines built from it (:func:`_composed_lines`: a power from a
     voltage and a current) carry its errors into the closed model. Returns the lines (the
-    others as derived) and the equations the composed lines are built from (``fit_choice``
-    where nothing changed, else all lines fitted on every recording). The variables changed go
-    to ``report["by_fit"]``, each one's candidates and choice to ``report["equations"]``."""
+    others as derived), the equations the composed lines are built from (``fit_choice`` where
+    nothing changed, else all lines fitted on every recording) and the variables changed; each
+    one's candidates and choice go to ``report["equations"]``."""
     lines = list(derived)
     changed: list[str] = []
     for j, target in enumerate(ae_state.contract.targets):
@@ -1039,14 +1029,12 @@ def _by_held_out_fit(
         if best != 0:
             lines[j] = options[best]
             changed.append(target)
-    report["by_fit"] = changed
     if not changed:
-        return lines, fit_choice
+        return lines, fit_choice, []
     basis = _assemble(ae_state, lines)
     if basis is None:
-        report["by_fit"] = []
-        return list(derived), fit_choice
-    return lines, basis
+        return list(derived), fit_choice, []
+    return lines, basis, changed
 
 
 def select_algebraic(
@@ -1123,8 +1111,9 @@ def select_algebraic(
     fronts: dict[int, list[ln.Line]] = {}
     held = _held_out(ae_state, recordings, played_from)
     report: dict[str, object] = {"held_out": held.label, "equations": {}}
-    derived, basis = _by_held_out_fit(ae_state, held.state, derived, fit_choice, used, config,
-                                      states, report)  # fmt: skip
+    derived, basis, by_fit_changed = _by_held_out_fit(
+        ae_state, held.state, derived, fit_choice, used, config, states, report
+    )
     for j, target in enumerate(contract.targets):
         if target not in used:
             picked.append(derived[j])
@@ -1160,14 +1149,19 @@ def select_algebraic(
     )
     report["dae_nrmse_fit_choice"] = by_fit
     current_lines, error = list(derived), by_fit
-    changed: list[str] = list(report.pop("by_fit", []))  # type: ignore[call-overload]
+    changed = list(by_fit_changed)
+    assembled: dict[tuple[str, ...], Equations | None] = {}
     for j, target in enumerate(contract.targets):
         options = {line.text: line for line in (picked[j], *fronts.get(j, ()))}
         if target in used and any(
             current_lines[k].text != derived[k].text for k in range(len(derived)) if k != j
         ):
-            # the lines built from the others as the closed model now has them
-            now = _assemble(ae_state, current_lines)
+            # the lines built from the others as the closed model now has them (fitted once
+            # per set of lines: consecutive variables often see the same)
+            key = tuple(line.text for line in current_lines)
+            if key not in assembled:
+                assembled[key] = _assemble(ae_state, current_lines)
+            now = assembled[key]
             for line in _composed_lines(held.state, j, now) if now is not None else ():
                 options.setdefault(line.text, line)
         options.pop(current_lines[j].text, None)
