@@ -57,7 +57,7 @@ from jaxdmd.select import (
     simulation_nrmse,
     weighted_by_recording,
 )
-from jaxdmd.simfit import refit_simulation
+from jaxdmd.simfit import refit_finalists
 
 __all__ = [
     "Discovery",
@@ -658,6 +658,7 @@ def discover(
         # (estimated from the loop's choice): what follows fits on the reweighted problem
         weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
         ae_selection = None
+        fit_choice = ae
         if config.selection is not None:
             start = time.perf_counter()
             ae, ae_selection = select_algebraic(
@@ -694,10 +695,23 @@ def discover(
             held = "recordings" if len(train) > 1 else "time blocks"
             observer.message(f"AE and DE refit by simulation, checked on left-out {held} ...")
             de_before = de
-            de, ae, simulation_report = refit_simulation(
-                de, ae, train, regressors, config.selection
+            # the selection's lines and the loop's own choice each refitted by simulation: the
+            # one that then simulates left-out data better is the model
+            finalists = [("selected", ae)]
+            if ae_selection is not None and ae_selection.get("changed"):
+                finalists.append(("fit choice", fit_choice))
+            de, ae, simulation_report = refit_finalists(
+                de, finalists, train, regressors, config.selection
             )
             ae_seconds += simulation_report["seconds"]
+            if simulation_report["chosen"] != "selected":
+                # the selection's changes are reported as not kept
+                ae_selection["not_kept"] = ae_selection["changed"]  # type: ignore[index]
+                ae_selection["changed"] = []  # type: ignore[index]
+                observer.message(
+                    "AE equations: the loop's own choice simulates left-out data better after "
+                    "the simulation refit than the selection's; the selection is not kept"
+                )
             if de is not de_before:  # the state equations' parameters changed with the AE's
                 report["de"]["params"] = list(de.params)
                 report["de"]["equations"] = de.readable()

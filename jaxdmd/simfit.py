@@ -47,7 +47,7 @@ from jaxdmd import select
 from jaxdmd.data import Dataset
 from jaxdmd.search import Equations
 
-__all__ = ["refit_simulation"]
+__all__ = ["refit_finalists", "refit_simulation"]
 
 
 def _played(recordings: Sequence[Dataset], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -313,3 +313,54 @@ def refit_simulation(
     de_new = dataclasses.replace(de, params=tuple(float(x) for x in theta[: sim.n_de]))
     ae_new = dataclasses.replace(ae, params=tuple(float(x) for x in theta[sim.n_de :]))
     return done("refit", (de_new, ae_new))
+
+
+def delivered_error(report: dict[str, Any]) -> float:
+    """The simulation error of what :func:`refit_simulation` delivers, as seen on data its
+    parameters were not fitted to: the mean left-out error of the refit where the refit is
+    kept, else the error of the given parameters (fitted to equation errors, not to
+    simulations: the simulation has not seen them); inf where nothing was measured."""
+    loro = report.get("loro")
+    if not loro:
+        return float("inf")
+    value = loro["refit"] if report.get("kept") == "refit" else loro["given"]
+    return float(value) if np.isfinite(value) else float("inf")
+
+
+def refit_finalists(
+    de: Equations,
+    finalists: Sequence[tuple[str, Equations]],
+    train: Sequence[Dataset],
+    played_from: Sequence[Dataset] | None = None,
+    config: select.SelectionConfig | None = None,
+) -> tuple[Equations, Equations, dict[str, Any]]:
+    """Of several algebraic equation sets, the one whose model simulates best after the
+    simulation refit, judged on data the parameters were not fitted to.
+
+    Each finalist (name, equations) is refitted with the state equations by
+    :func:`refit_simulation`, and its :func:`delivered_error` compared; the first of equal
+    errors wins (list the preferred one first). A choice by simulation among lines whose
+    parameters are fitted to equation errors cannot see how far the simulation refit will
+    take each of them: a structure whose least-squares parameters simulate badly may be the
+    one that simulates best once they are fitted to simulate (measured on the benchmark, IEEE
+    39-bus generator 30: the selection's lines left-out 0.043 NRMSE after the refit, the AE
+    loop's own choice 0.0145, and on the test fault 0.79 % against 0.50 % MAPE). Returns the
+    winner's equations and its refit report, with ``finalists`` (per finalist its name,
+    ``delivered_nrmse`` and whether the refit was kept) and ``chosen`` (its name) added."""
+    if not finalists:
+        raise ValueError("refit_finalists needs at least one finalist")
+    start = time.perf_counter()
+    results = [
+        (name, *refit_simulation(de, ae, train, played_from, config)) for name, ae in finalists
+    ]
+    errors = [delivered_error(r[3]) for r in results]
+    best = min(range(len(results)), key=lambda i: (errors[i], i))
+    name, de_out, ae_out, report = results[best]
+    report = dict(report)
+    report["finalists"] = [
+        {"name": r[0], "delivered_nrmse": e, "kept": r[3]["kept"]}
+        for r, e in zip(results, errors, strict=True)
+    ]
+    report["chosen"] = name
+    report["seconds"] = time.perf_counter() - start
+    return de_out, ae_out, report
