@@ -11,8 +11,8 @@ import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import interp, search
 from jaxdmd.data import Dataset
 from jaxdmd.problems import ae_problem, de_problem
-from jaxdmd.select import SelectionConfig, dae_error
-from jaxdmd.simfit import _Simulator, refit_simulation
+from jaxdmd.select import SelectionConfig, dae_error, simulation_nrmse
+from jaxdmd.simfit import _Simulator, refit_finalists, refit_simulation
 
 GAIN = 5.0
 
@@ -102,3 +102,44 @@ def test_one_recording_the_refit_is_checked_on_held_out_time_blocks():
     de_new, ae_new, report = refit_simulation(de, ae, recordings)
     assert report["kept"] == "given: the refit does not simulate left-out time blocks (4) better"
     assert (de_new, ae_new) == (de, ae)
+
+
+def _stand_in(recordings: list[Dataset], contract) -> search.Equations:
+    """y = a x + b u fitted to y by least squares (an equation-error fit): the input u stands
+    in for the slow angle theta the truth has."""
+    x, u, y = (np.concatenate([np.asarray(ds[c]) for ds in recordings]) for c in ("x", "u", "y"))
+    a, b = np.linalg.lstsq(np.stack([x, u], 1), y, rcond=None)[0]
+    source = "def g(x, u, p):\n    return p[0] * x + p[1] * u\n"
+    return search.Equations(contract, source, (float(a), float(b)), (0.0,), 0.0)
+
+
+def test_the_structure_that_simulates_best_once_refitted_is_the_model():
+    """The true structure with the gains an equation-error fit can leave (2.0, -2.2 for 5, -5)
+    simulates the closed model worse than a stand-in fitted by least squares (u for theta):
+    judged by its parameters as given, the stand-in wins. Refitted to simulate, the truth
+    simulates left-out recordings 10x better than the stand-in can: it is the model, with the
+    data's gains; listed first, it stays the model."""
+    recordings = _regulator()
+    de, truth = _equations(recordings, (2.0, -2.2))
+    stand_in = _stand_in(recordings, truth.contract)
+    assert simulation_nrmse(de, recordings, stand_in) < simulation_nrmse(de, recordings, truth)
+    _, ae_new, report = refit_finalists(de, [("stand-in", stand_in), ("truth", truth)], recordings)
+    assert report["chosen"] == "truth", report["finalists"]
+    errors = {f["name"]: f["held_out_nrmse"] for f in report["finalists"]}
+    assert errors["truth"] < 0.1 * errors["stand-in"]
+    assert report["kept"] == "refit"
+    assert ae_new.params == pytest.approx((GAIN, -GAIN), rel=0.01)
+    _, _, report = refit_finalists(de, [("truth", truth), ("stand-in", stand_in)], recordings)
+    assert report["chosen"] == "truth"
+
+
+def test_a_finalist_replaces_the_preferred_one_only_when_clearly_better():
+    """Two finalists that are the same structure simulate alike after the refit: the first
+    (the preferred) stays the model; no finalist at all is an error."""
+    recordings = _regulator()
+    de, first = _equations(recordings, (GAIN, -GAIN))
+    _, second = _equations(recordings, (4.9, -5.1))
+    _, _, report = refit_finalists(de, [("first", first), ("second", second)], recordings)
+    assert report["chosen"] == "first"
+    with pytest.raises(ValueError):
+        refit_finalists(de, [], recordings)
