@@ -27,6 +27,11 @@ rest, and the block simulated from the states at its first sample, its error ove
 normalised by the whole recording's range; the given parameters are scored on the same
 blocks.
 
+Which structure to refit is itself a choice by simulation (:func:`refit_finalists`): where the
+selection (:func:`jaxdmd.select.select_algebraic`) changed the AE loop's lines, both sets are
+refitted, and the one whose structure simulates the left-out recordings better once fitted to
+simulate is the model; the loop's choice, listed second, must be better by the tolerance.
+
 The simulation is the host simulation's scheme (:func:`jaxdmd.select.simulate_host`: Heun's
 method on the sample grid with ``substeps``, inputs linear between samples and held across an
 event), written in JAX so that its Jacobian is exact; one compiled fit serves every fold.
