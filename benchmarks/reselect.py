@@ -74,7 +74,10 @@ def compare(before: Path, after: Path, pairs: Sequence[tuple[int, int]]) -> str:
         dae, de = new["test"]["dae"]["mean"], new["test"]["de"]["mean"]
         pe = (old["ae"]["test_r2"].get("P_e", float("nan")),
               new["ae"]["test_r2"].get("P_e", float("nan")))  # fmt: skip
-        changed = ", ".join(new["ae"].get("selection", {}).get("changed", [])) or "-"
+        selection = new["ae"].get("selection", {})
+        changed = ", ".join(selection.get("changed", [])) or "-"
+        if selection.get("not_kept"):  # the loop's own choice won after the simulation refit
+            changed = f"fit choice kept ({', '.join(selection['not_kept'])} not)"
         lines.append(
             f"| {seed} | {gen} | {rows['jaxdmd_dae']['mape']:.3f} | {dae['mape']:.3f} "
             f"| {rows['jaxdmd_dae']['r2']:.3f} | {dae['r2']:.3f} "
