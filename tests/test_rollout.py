@@ -15,6 +15,7 @@ from jaxdmd.data import Dataset
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.rollout import (
     Block,
+    at_equilibrium,
     fault_window,
     interpolate,
     metrics,
@@ -201,6 +202,26 @@ def test_true_model_reproduces_the_data(toy: Dataset, mode: str) -> None:
         np.testing.assert_allclose(res["P_e"], toy["P_e"], atol=1e-6)
     else:
         assert "P_e" in res.played_in
+
+
+def test_a_model_is_put_at_equilibrium_where_the_recording_starts(toy: Dataset) -> None:
+    """A model whose P_max is 5 % off the data's is not at rest at the recorded first state:
+    solved for the rotor angle (and with the mechanical power free, the power held at its
+    recorded value) it is."""
+    de, ae = _models(pmax=1.05 * PMAX)
+    start, report = at_equilibrium(de, toy, ("delta",), ae=ae)
+    assert report["residual"]["after"] < 1e-9 < report["residual"]["before"]
+    assert report["solved"]["delta"] == pytest.approx(math.asin(1.0 / (1.05 * PMAX)), rel=1e-9)
+    assert float(start["delta"][0]) == report["solved"]["delta"]
+    np.testing.assert_array_equal(start["delta"][1:], toy["delta"][1:])
+
+    start, report = at_equilibrium(de, toy, ("delta", "P_m"), hold=("P_e",), ae=ae)
+    assert report["solved"]["P_m"] == pytest.approx(float(toy["P_e"][0]), rel=1e-9)
+    assert np.ptp(start["P_m"]) == 0.0
+    with pytest.raises(ValueError, match="neither states"):
+        at_equilibrium(de, toy, ("Q_m",), ae=ae)
+    with pytest.raises(ValueError, match="algebraic variables"):
+        at_equilibrium(de, toy, ("delta",), hold=("omega",), ae=ae)
 
 
 def test_wrong_model_scores_worse(toy: Dataset) -> None:
