@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdmd import lines as ln
 from jaxdmd import select
 from jaxdmd.data import Dataset
 from jaxdmd.search import Equations
@@ -320,6 +321,18 @@ def refit_simulation(
     return done("refit", (de_new, ae_new))
 
 
+def _simulated_structure(de: Equations, ae: Equations) -> tuple[str, ...]:
+    """The texts of ``ae``'s lines for the algebraic variables the state equations use, in
+    order: what the simulation refit sees of an AE equation set (its residual holds only the
+    states), less the parameters, which the refit fits."""
+    used = set().union(*(line.variables() for line in ln.split_lines(de.source)[0]))
+    lines, _ = ln.split_lines(ae.source)
+    return tuple(
+        line.text for target, line in zip(ae.contract.targets, lines, strict=True)
+        if target in used
+    )  # fmt: skip
+
+
 def held_out_error(report: dict[str, Any]) -> float:
     """The mean left-out simulation error of the structure in a :func:`refit_simulation`
     report, its parameters fitted to simulate the other recordings (or time blocks): how the
@@ -351,14 +364,24 @@ def refit_finalists(
     the AE loop's own choice 0.0145; on the test fault 0.79 % against 0.50 % MAPE). Returns
     the chosen finalist's equations as :func:`refit_simulation` delivers them (refitted or
     given) and its report, with ``finalists`` (per finalist its name, ``held_out_nrmse`` and
-    whether its refit was kept) and ``chosen`` (the name) added."""
+    whether its refit was kept) and ``chosen`` (the name) added. A finalist whose lines for
+    the variables the state equations use have the same structure as an earlier one's (they
+    differ only where no state sees it, or in their parameters, which the refit fits) is not
+    refitted: there is no structure to decide between."""
     if not finalists:
         raise ValueError("refit_finalists needs at least one finalist")
     config = config or select.SelectionConfig()
     start = time.perf_counter()
-    results = [
-        (name, *refit_simulation(de, ae, train, played_from, config)) for name, ae in finalists
-    ]
+    results, seen = [], {}
+    for name, ae in finalists:
+        structure = _simulated_structure(de, ae)
+        if structure in seen:  # the states simulate the same structure: nothing to decide
+            seen_name = seen[structure]
+            skipped = f"not refitted: the lines the states use are those of {seen_name!r}"
+            results.append((name, de, ae, {"kept": skipped}))
+            continue
+        seen[structure] = name
+        results.append((name, *refit_simulation(de, ae, train, played_from, config)))
     errors = [held_out_error(r[3]) for r in results]
     best = 0
     for i in range(1, len(results)):

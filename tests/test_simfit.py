@@ -134,12 +134,27 @@ def test_the_structure_that_simulates_best_once_refitted_is_the_model():
 
 
 def test_a_finalist_replaces_the_preferred_one_only_when_clearly_better():
-    """Two finalists that are the same structure simulate alike after the refit: the first
-    (the preferred) stays the model; no finalist at all is an error."""
+    """The truth and the truth with a stand-in added (u, fitted by least squares) simulate
+    left-out recordings alike once refitted: whichever is listed first stays the model. A
+    finalist that differs from an earlier one only in its parameters is not refitted (the
+    refit fits them); no finalist at all is an error."""
     recordings = _regulator()
-    de, first = _equations(recordings, (GAIN, -GAIN))
-    _, second = _equations(recordings, (4.9, -5.1))
-    _, _, report = refit_finalists(de, [("first", first), ("second", second)], recordings)
+    de, truth = _equations(recordings, (GAIN, -GAIN))
+    x, u, theta, y = (
+        np.concatenate([np.asarray(ds[c]) for ds in recordings]) for c in ("x", "u", "theta", "y")
+    )
+    p = np.linalg.lstsq(np.stack([x, theta, u], 1), y, rcond=None)[0]
+    source = "def g(x, theta, u, p):\n    return p[0] * x + p[1] * theta + p[2] * u\n"
+    extra = search.Equations(truth.contract, source, tuple(map(float, p)), (0.0,), 0.0)
+    _, _, report = refit_finalists(de, [("truth", truth), ("extra", extra)], recordings)
+    errors = [f["held_out_nrmse"] for f in report["finalists"]]
+    assert errors[1] == pytest.approx(errors[0], rel=0.05)
+    assert report["chosen"] == "truth"
+    _, _, report = refit_finalists(de, [("extra", extra), ("truth", truth)], recordings)
+    assert report["chosen"] == "extra"
+    _, other = _equations(recordings, (4.9, -5.1))
+    _, _, report = refit_finalists(de, [("first", truth), ("second", other)], recordings)
     assert report["chosen"] == "first"
+    assert report["finalists"][1]["kept"].startswith("not refitted"), report["finalists"]
     with pytest.raises(ValueError):
         refit_finalists(de, [], recordings)
