@@ -420,6 +420,17 @@ def _prepare(
     return tuple(needed), None
 
 
+def _ae_blocks(
+    ae: Block | _EquationsLike | Sequence[Block | _EquationsLike] | None,
+) -> tuple[Block, ...]:
+    """The algebraic equations as blocks, evaluated in order: none, one, or several."""
+    if ae is None:
+        return ()
+    if isinstance(ae, Block) or hasattr(ae, "skeleton"):
+        return (as_block(ae),)  # type: ignore[arg-type]
+    return tuple(as_block(a) for a in ae)  # type: ignore[union-attr]
+
+
 def rollout(
     de: Block | _EquationsLike,
     data: Dataset,
@@ -453,12 +464,7 @@ def rollout(
         raise ValueError(f"unknown mode {mode!r}; use 'dae' or 'de'")
     config = config or RolloutConfig()
     de_b = as_block(de)
-    if ae is None:
-        ae_list: tuple[Block, ...] = ()
-    elif isinstance(ae, (Block,)) or hasattr(ae, "skeleton"):
-        ae_list = (as_block(ae),)  # type: ignore[arg-type]
-    else:
-        ae_list = tuple(as_block(a) for a in ae)  # type: ignore[union-attr]
+    ae_list = _ae_blocks(ae)
     played, _ = _prepare(de_b, ae_list, data, mode)
     states = de_b.targets
 
@@ -553,12 +559,7 @@ def at_equilibrium(
     channel is neither a state of the model nor a signal it plays in, or if the solve turns
     non-finite."""
     de_b = as_block(de)
-    if ae is None:
-        ae_list: tuple[Block, ...] = ()
-    elif isinstance(ae, Block) or hasattr(ae, "skeleton"):
-        ae_list = (as_block(ae),)  # type: ignore[arg-type]
-    else:
-        ae_list = tuple(as_block(a) for a in ae)  # type: ignore[union-attr]
+    ae_list = _ae_blocks(ae)
     played, _ = _prepare(de_b, ae_list, data, mode)
     states = de_b.targets
     unknown = [n for n in free if n not in states and n not in played]
