@@ -356,6 +356,12 @@ def _fold_params(state: SearchState, j: int, skeletons: Sequence[Skeleton]) -> n
     return out
 
 
+def used_variables(equations: Equations) -> set[str]:
+    """The variables ``equations``' lines use (for state equations: the algebraic variables
+    and inputs the states see)."""
+    return set().union(*(line.variables() for line in ln.split_lines(equations.source)[0]))
+
+
 def _complexity(line: ln.Line, states: set[str]) -> tuple[int, int, int]:
     return (
         line.n_params,
@@ -1099,8 +1105,7 @@ def select_algebraic(
         return fit_choice, {"skipped": "the recordings do not share a time grid"}
     contract = ae_state.contract
     states = {v.name for v in de.contract.states}
-    de_lines, _ = ln.split_lines(de.source)
-    used = set().union(*(line.variables() for line in de_lines))
+    used = used_variables(de)
     derived, _ = ln.split_lines(fit_choice.source)
     archived = _archive_lines(ae_state)
     # the algebraic variables share their physics (a stator current and the power are built

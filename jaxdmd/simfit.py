@@ -325,7 +325,7 @@ def _simulated_structure(de: Equations, ae: Equations) -> tuple[str, ...]:
     """The texts of ``ae``'s lines for the algebraic variables the state equations use, in
     order: what the simulation refit sees of an AE equation set (its residual holds only the
     states), less the parameters, which the refit fits."""
-    used = set().union(*(line.variables() for line in ln.split_lines(de.source)[0]))
+    used = select.used_variables(de)
     lines, _ = ln.split_lines(ae.source)
     return tuple(
         line.text for target, line in zip(ae.contract.targets, lines, strict=True)
