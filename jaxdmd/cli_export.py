@@ -34,6 +34,14 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", default=None, help="output folder (default: RUN_DIR/export)", metavar="DIR"
     )
+    parser.add_argument(
+        "--data",
+        nargs="+",
+        metavar="FILE",
+        help="the training recordings: the standard records then hold the standard model "
+        "fitted as a whole to them (its parameters tied as its family ties them; also written "
+        "as standard_model.py); default: the values read off the discovered lines",
+    )
     parser.add_argument("--bus", type=int, default=1, help="the .dyr record's bus number")
     parser.add_argument("--id", default="1", help="the .dyr record's machine id")
     parser.add_argument("--p0", type=float, default=0.8, help="ANDES case: active power (pu)")
@@ -41,6 +49,29 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--x-line", type=float, default=0.3, help="ANDES case: line reactance to the infinite bus"
     )
+    from jaxdmd.cli_data import add_role_arguments
+
+    add_role_arguments(
+        parser.add_argument_group(
+            "channel roles (of the --data columns: for a CSV without a sidecar, or to override it)"
+        )
+    )
+
+
+def _fit_line(fit: dict) -> str:
+    """One line on the standard model's fit (:func:`jaxdmd.export.fit_standard`'s report)."""
+    if "why" in fit:
+        return f"standard records read off the discovered lines: {fit['why']}"
+    loro = fit.get("loro", {})
+    errors = (
+        f" (left-out simulation NRMSE {loro['refit']:.4g}; the tied first estimates "
+        f"{loro['given']:.4g})"
+        if "refit" in loro and "given" in loro
+        else ""
+    )
+    if fit["from"] == "refit":
+        return f"standard model fitted as a whole to the recordings{errors}"
+    return f"standard model: the refit was not kept ({fit.get('kept')}): first estimates tied"
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -51,7 +82,20 @@ def run_export(args: argparse.Namespace) -> int:
     run = Path(args.run)
     out = Path(args.out) if args.out else (run if run.is_dir() else run.parent) / "export"
     andes = {"p0": args.p0, "v0": args.v0, "x_line": args.x_line}
-    written = export(discovery, out, args.format, bus=args.bus, machine_id=args.id, andes=andes)
+    fitted_to = None
+    if args.data:
+        from jaxdmd.cli_diagnose import load_recordings
+
+        fitted_to = load_recordings(args.data, args)
+    written = export(
+        discovery, out, args.format, bus=args.bus, machine_id=args.id, andes=andes,
+        fitted_to=fitted_to,
+    )  # fmt: skip
+    fit = written.pop("standard_fit", None)
+    if fit is not None:
+        print(_fit_line(fit))
+    if "standard_model" in written:
+        print(f"standard model: {written.pop('standard_model')}")
     failed = 0
     for fmt, what in written.items():
         if isinstance(what, Path):

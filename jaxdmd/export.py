@@ -48,6 +48,7 @@ Formats (:func:`export`, the ``jaxdmd export RUN_DIR --format dyr,andes,py`` com
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -55,22 +56,32 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from jaxdmd.physical import PhysicalReport, physical_parameters
 
 __all__ = [
     "ASSUMED",
     "FORMATS",
     "ExportError",
+    "StandardFit",
     "StandardMachine",
     "andes_case",
     "dyr_record",
     "export",
+    "fit_standard",
     "genrou_q_axis",
     "standard_machine",
+    "tied_source",
     "write_module",
 ]
 
 FORMATS = ("dyr", "andes", "py")
+
+NOMINAL_HZ = (50.0, 60.0)
+"""The power systems' frequencies: a discovered Omega_b within 2 % of one is taken as it in the
+tied standard model (:func:`tied_source`), not fitted (the rotor angle's simulation cannot
+tell Omega_b from 1/M well: they trade along Omega_b / M)."""
 
 ASSUMED: dict[str, float] = {
     "T''_d0": 0.03,  # s, GENROU/GENSAL's d-axis damper (no effect on GENROU when x''_d = x'_d)
@@ -483,6 +494,155 @@ def andes_case(
 
 
 # ----------------------------------------------------------------------------------------------
+# the standard model fitted as a whole
+
+
+def tied_source(report: PhysicalReport) -> str:
+    """The PSAT 5.1 machine of ``report`` as a jaxdmd module (``model.py`` text) whose
+    parameters are tied as the family ties them: one 1/M for P_m and P_e, one 1/T'_d0 for v_f
+    and e'_q, one 1/T''_q0 for e'_d and e''_d, one pair (r_a, x'_d) / (r_a^2 + x'_d^2) for both
+    stator lines, and P_e = e'_q i_q + e''_d i_d (Q_e = v_q i_d - v_d i_q) from the same
+    currents. Its parameters start at the report's values (the first estimate of each). Every
+    line is linear in its parameters, so :func:`jaxdmd.physical.physical_parameters` reads it
+    like a discovered model, and what a standard record holds is exactly this model."""
+    if report.family != "psat-5.1":
+        raise ExportError(
+            f"a tied standard model is written for the psat-5.1 family only (this model: "
+            f"{report.family}); export the record as identified instead"
+        )
+
+    def value(name: str, default: float | None = None) -> float:
+        v = _value(report, name)
+        if v is None:
+            if default is None:
+                raise ExportError(f"the discovered psat-5.1 model does not identify {name}")
+            return default
+        return v
+
+    d = report.get("D")
+    damping = d is not None and d.note != "not in the model"
+    m, xdp, ra = value("M"), value("x'_d"), value("r_a", 0.0)
+    det = ra**2 + xdp**2
+    de: list[float] = []
+
+    def p(v: float) -> str:
+        de.append(v)
+        return f"p[{len(de) - 1}]"
+
+    omega_b = value("Omega_b", 2 * math.pi * 60)
+    nominal = min(NOMINAL_HZ, key=lambda f: abs(2 * math.pi * f / omega_b - 1))
+    if abs(2 * math.pi * nominal / omega_b - 1) <= 0.02:
+        speed = repr(2 * math.pi * nominal)  # the system's frequency: known, not fitted
+    else:
+        speed = p(omega_b)
+    swing = f"{p(1 / m)} * (P_m - P_e)" + (
+        f" + {p(-value('D') / m)} * (omega - 1)" if damping else ""
+    )
+    t_d0, t_q0, t_q02 = value("T'_d0"), value("T'_q0"), value("T''_q0")
+    x_d, x_q = value("x_d - x'_d"), value("x_q - x'_q - gamma_q")
+    x_qp = value("x'_q - x'_d + gamma_q")
+    d_axis = f"{p(1 / t_d0)} * (v_f - e_qp) + {p(-x_d / t_d0)} * i_d"
+    q_axis = f"{p(-1 / t_q0)} * e_dp + {p(x_q / t_q0)} * i_q"
+    q_fast = f"{p(1 / t_q02)} * (e_dp - e_dpp) + {p(x_qp / t_q02)} * i_q"
+    vd, vq = "V * jnp.sin(delta - theta)", "V * jnp.cos(delta - theta)"
+    i_d = f"p[0] * (e_dpp - {vd}) + p[1] * (e_qp - {vq})"
+    i_q = f"p[0] * (e_qp - {vq}) - p[1] * (e_dpp - {vd})"
+    lines = {
+        "i_d": i_d,
+        "i_q": i_q,
+        "P_e": f"e_qp * ({i_q}) + e_dpp * ({i_d})",
+        "Q_e": f"{vq} * ({i_d}) - {vd} * ({i_q})",
+    }
+    targets = list(lines)
+    body = "\n".join(f"    {t}_ = {lines[t]}" for t in targets)
+    return (
+        f'"""The {report.family} machine, its parameters tied as the family ties them '
+        '(jaxdmd.export.tied_source)."""\n\n'
+        "import jax.numpy as jnp  # noqa: F401\n\n"
+        "def equation(delta, omega, e_qp, e_dp, e_dpp, P_m, v_f, i_d, i_q, P_e, p):\n"
+        f"    d_delta = {speed} * (omega - 1)\n"
+        f"    d_omega = {swing}\n"
+        f"    d_e_qp = {d_axis}\n"
+        f"    d_e_dp = {q_axis}\n"
+        f"    d_e_dpp = {q_fast}\n"
+        "    return d_delta, d_omega, d_e_qp, d_e_dp, d_e_dpp\n\n"
+        f"DE_PARAMS = {de!r}\n"
+        "DE_TARGETS = ['delta', 'omega', 'e_qp', 'e_dp', 'e_dpp']\n\n"
+        "def algebraic(delta, e_qp, e_dpp, V, theta, p):\n"
+        f"{body}\n"
+        f"    return {', '.join(t + '_' for t in targets)}\n\n"
+        f"AE_PARAMS = {[ra / det, xdp / det]!r}\n"
+        f"AE_TARGETS = {targets!r}\n"
+    )
+
+
+@dataclass(frozen=True)
+class StandardFit:
+    """The standard model of a discovery with its parameters fitted as the family ties them.
+
+    Attributes:
+        model: the tied model (a :class:`jaxdmd.pipeline.Discovery`; ``model.module_source()``
+            is what ``standard_model.py`` holds, and ``model.simulate`` is exactly what the
+            standard record simulates).
+        machine: the standard record's values (:func:`standard_machine` of ``model``).
+        report: the refit by simulation (:func:`jaxdmd.simfit.refit_simulation`'s report:
+            ``kept``, the left-out and in-sample errors) and ``"from"``: ``"refit"`` or
+            ``"read off"`` (the discovered values tied, the refit not kept).
+    """
+
+    model: Any
+    machine: StandardMachine
+    report: dict[str, Any]
+
+
+def fit_standard(
+    discovery: Any,
+    train: Sequence[Any],
+    *,
+    played_from: Sequence[Any] | None = None,
+    config: Any = None,
+    assume: Mapping[str, float] | None = None,
+) -> StandardFit:
+    """The standard model ``discovery`` maps to, its parameters tied as the family ties them
+    (:func:`tied_source`) and fitted together by how the model simulates the training
+    recordings (:func:`jaxdmd.simfit.refit_simulation`: closed and with the measured algebraic
+    variables played in, kept only if the left-out error improves).
+
+    A discovered model holds several estimates of one parameter (1/T'_d0 from v_f and from
+    e'_q, each stator line its own reactance, a power line built from current and voltage
+    lines of its own, small stand-in terms) and a standard record holds one; the record read
+    off the discovered lines then simulates a little differently from the discovered model.
+    Fitted as a whole, the record's values are those with which the standard model itself
+    simulates the recordings best. ``played_from``, ``config``: as for ``refit_simulation``.
+    Raises :class:`ExportError` where the model has no standard family or the family has no
+    tied form yet (only ``psat-5.1`` has)."""
+    from jaxdmd.pipeline import loads
+    from jaxdmd.refine import model_states
+    from jaxdmd.simfit import refit_simulation
+
+    m = standard_machine(discovery, assume)
+    if played_from is None:  # initial states and played-in channels less noisy than measured
+        try:
+            played_from = [e.dataset for e in model_states(discovery.de, train)]
+        except (ValueError, np.linalg.LinAlgError):
+            played_from = None
+    tied = loads(tied_source(m.report), "<tied standard model>")  # type: ignore[arg-type]
+    de, ae_fit, report = refit_simulation(tied.de, tied.ae, train, played_from, config)
+    model = dataclasses.replace(tied, de=de, ae=ae_fit, report={"standard_fit": report})
+    report = {**report, "from": "refit" if report.get("kept") == "refit" else "read off"}
+    machine = standard_machine(model, assume)
+    note = (
+        f"parameters tied as {m.report.family} ties them and fitted by simulation to "  # type: ignore[union-attr]
+        f"{len(train)} recording(s)"
+        if report["from"] == "refit"
+        else f"parameters tied as {m.report.family} ties them (first estimates; the refit by "  # type: ignore[union-attr]
+        f"simulation was not kept: {report.get('kept')})"
+    )
+    machine = dataclasses.replace(machine, notes=(note, *machine.notes))
+    return StandardFit(model, machine, report)
+
+
+# ----------------------------------------------------------------------------------------------
 # the Python module and the folder
 
 
@@ -495,6 +655,31 @@ def write_module(discovery: Any, path: str | Path) -> Path:
     return path
 
 
+def _machine(
+    discovery: Any,
+    assume: Mapping[str, float] | None,
+    fitted_to: Sequence[Any] | None,
+    out: Path,
+    written: dict[str, Any],
+) -> StandardMachine | ExportError:
+    """The standard record's values for :func:`export` (fitted where it can be), or why none."""
+    try:
+        if fitted_to:
+            try:
+                fit = fit_standard(discovery, fitted_to, assume=assume)
+            except ExportError as err:
+                if "tied" not in str(err):
+                    raise
+                written["standard_fit"] = {"from": "read off", "why": str(err)}
+            else:
+                written["standard_model"] = write_module(fit.model, out / "standard_model.py")
+                written["standard_fit"] = fit.report
+                return fit.machine
+        return standard_machine(discovery, assume)
+    except ExportError as err:
+        return err
+
+
 def export(
     discovery: Any,
     directory: str | Path,
@@ -505,30 +690,32 @@ def export(
     assume: Mapping[str, float] | None = None,
     andes: Mapping[str, Any] | None = None,
     strict: bool = False,
-) -> dict[str, Path | str]:
+    fitted_to: Sequence[Any] | None = None,
+) -> dict[str, Any]:
     """Write ``discovery`` into ``directory`` in each of ``formats`` (``dyr``: ``model.dyr``,
     ``andes``: ``andes_case.json``, ``py``: ``model.py``).
 
     Returns ``{format: path}`` for what was written and ``{format: reason}`` for a format the
     model cannot be written in (with ``strict``, that raises :class:`ExportError` instead).
     ``andes``: keyword arguments of :func:`andes_case` (operating point, line, fault).
+    ``fitted_to``: training recordings; the standard records then hold the standard model
+    fitted as a whole to them (:func:`fit_standard`), which is also written as
+    ``standard_model.py`` (``{"standard_model": path}``; ``{"standard_fit": report}``), and
+    where no tied form exists the records are read off the discovered lines as without it.
     """
     unknown = [f for f in formats if f not in FORMATS]
     if unknown:
         raise ValueError(f"unknown export format(s) {unknown}; use some of {list(FORMATS)}")
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    written: dict[str, Path | str] = {}
+    written: dict[str, Any] = {}
     machine: StandardMachine | ExportError | None = None
     for fmt in formats:
         if fmt == "py":
             written[fmt] = write_module(discovery, out / "model.py")
             continue
         if machine is None:
-            try:
-                machine = standard_machine(discovery, assume)
-            except ExportError as err:
-                machine = err
+            machine = _machine(discovery, assume, fitted_to, out, written)
         try:
             if isinstance(machine, ExportError):
                 raise machine

@@ -68,6 +68,7 @@ __all__ = [
     "ProposerFactory",
     "discover",
     "load",
+    "loads",
     "resume_or_init",
     "run_loop",
 ]
@@ -356,7 +357,7 @@ class Discovery:
             "",
             self.de.source.rstrip(),
             "",
-            f"DE_PARAMS = {list(self.de.params)!r}",
+            f"DE_PARAMS = {[float(x) for x in self.de.params]!r}",
             f"DE_TARGETS = {list(self.de.contract.targets)!r}",
         ]
         if self.ae is not None:
@@ -364,7 +365,7 @@ class Discovery:
                 "",
                 self.ae.source.rstrip(),
                 "",
-                f"AE_PARAMS = {list(self.ae.params)!r}",
+                f"AE_PARAMS = {[float(x) for x in self.ae.params]!r}",
                 f"AE_TARGETS = {list(self.ae.contract.targets)!r}",
             ]
         return "\n".join(parts) + "\n"
@@ -404,15 +405,20 @@ def load(path: str | Path) -> Discovery:
     The loaded model simulates and scores as the discovered one did; its search states are not
     kept (``de_state`` and ``ae_state`` are None).
     """
-    import ast
-
-    from jaxdmd.skeleton import SkeletonError
-
     path = Path(path)
     file = path / "model.py" if path.is_dir() else path
     if not file.exists():
         raise ValueError(f"no model found: {file} does not exist")
-    text = file.read_text()
+    return loads(file.read_text(), str(file))
+
+
+def loads(text: str, file: str = "<model>") -> Discovery:
+    """A :class:`Discovery` from the text of a ``model.py`` (:func:`load`; ``file`` names it
+    in errors and in ``report["loaded_from"]``)."""
+    import ast
+
+    from jaxdmd.skeleton import SkeletonError
+
     try:
         tree = ast.parse(text, filename=str(file))
     except SyntaxError as err:
