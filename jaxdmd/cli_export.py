@@ -64,14 +64,18 @@ def _fit_line(fit: dict) -> str:
         return f"standard records read off the discovered lines: {fit['why']}"
     loro = fit.get("loro", {})
     errors = (
-        f" (left-out simulation NRMSE {loro['refit']:.4g}; the tied first estimates "
+        f" (left-out simulation NRMSE {loro['refit']:.4g}; fitted by least squares, in sample: "
         f"{loro['given']:.4g})"
         if "refit" in loro and "given" in loro
         else ""
     )
-    if fit["from"] == "refit":
-        return f"standard model fitted as a whole to the recordings{errors}"
-    return f"standard model: the refit was not kept ({fit.get('kept')}): first estimates tied"
+    how = (
+        f"standard model fitted as a whole to the recordings{errors}"
+        if fit["from"] == "refit"
+        else f"standard model fitted by least squares (the refit by simulation was not kept: "
+        f"{fit.get('kept')})"
+    )
+    return how + (f"; projected on PSAT 5.1: {fit['projected']}" if "projected" in fit else "")
 
 
 def run_export(args: argparse.Namespace) -> int:

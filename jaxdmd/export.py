@@ -44,6 +44,13 @@ Formats (:func:`export`, the ``jaxdmd export RUN_DIR --format dyr,andes,py`` com
   a classical stator line, P_m/M) are not written; they hold for the operating point the data
   were recorded at. Writing it does not need ANDES (``pip install jaxdmd[export]`` to run it).
 - ``py``: the model as jaxdmd's Python module (``model.py``), for any structure.
+
+Given the training recordings (``export(..., fitted_to=train)``, ``jaxdmd export --data``),
+the records hold the standard machine fitted as a whole (:func:`fit_standard`): PSAT 5.1 with
+its parameters tied as the family ties them (:func:`tied_source`), fitted by least squares on
+the model-smoothed recordings and then by how it simulates them; a discovered model with
+PSAT 5.1's states and stand-in terms is projected on the family that way. The tied model is
+written as ``standard_model.py``: its rollout is what the records simulate.
 """
 
 from __future__ import annotations
@@ -497,31 +504,28 @@ def andes_case(
 # the standard model fitted as a whole
 
 
+PSAT_STATES = ("delta", "omega", "e_qp", "e_dp", "e_dpp")
+"""The states of the PSAT 5.1 machine (and of its tied form, :func:`tied_source`)."""
+
+
 def tied_source(report: PhysicalReport) -> str:
     """The PSAT 5.1 machine of ``report`` as a jaxdmd module (``model.py`` text) whose
     parameters are tied as the family ties them: one 1/M for P_m and P_e, one 1/T'_d0 for v_f
     and e'_q, one 1/T''_q0 for e'_d and e''_d, one pair (r_a, x'_d) / (r_a^2 + x'_d^2) for both
-    stator lines, and P_e = e'_q i_q + e''_d i_d (Q_e = v_q i_d - v_d i_q) from the same
-    currents. Its parameters start at the report's values (the first estimate of each). Every
-    line is linear in its parameters, so :func:`jaxdmd.physical.physical_parameters` reads it
-    like a discovered model, and what a standard record holds is exactly this model."""
-    if report.family != "psat-5.1":
-        raise ExportError(
-            f"a tied standard model is written for the psat-5.1 family only (this model: "
-            f"{report.family}); export the record as identified instead"
-        )
+    stator lines, and P_e = e'_q i_q + e''_d i_d, Q_e = v_q i_d - v_d i_q from the same
+    currents; Omega_b is the system's frequency where the report's is within 2 % of one
+    (:data:`NOMINAL_HZ`). Its parameters start at the report's values (the first estimate of
+    each; 1 where the report has none, as for a model that is not of the family, whose
+    equations map only in part). Every line is linear in its parameters, so
+    :func:`jaxdmd.physical.physical_parameters` reads it like a discovered model, and what a
+    standard record holds is exactly this model."""
 
-    def value(name: str, default: float | None = None) -> float:
-        v = _value(report, name)
-        if v is None:
-            if default is None:
-                raise ExportError(f"the discovered psat-5.1 model does not identify {name}")
-            return default
-        return v
+    def value(name: str) -> float:
+        return _value(report, name) or 1.0
 
     d = report.get("D")
     damping = d is not None and d.note != "not in the model"
-    m, xdp, ra = value("M"), value("x'_d"), value("r_a", 0.0)
+    m, xdp, ra = value("M"), value("x'_d"), _value(report, "r_a") or 0.0
     det = ra**2 + xdp**2
     de: list[float] = []
 
@@ -529,14 +533,14 @@ def tied_source(report: PhysicalReport) -> str:
         de.append(v)
         return f"p[{len(de) - 1}]"
 
-    omega_b = value("Omega_b", 2 * math.pi * 60)
-    nominal = min(NOMINAL_HZ, key=lambda f: abs(2 * math.pi * f / omega_b - 1))
-    if abs(2 * math.pi * nominal / omega_b - 1) <= 0.02:
+    omega_b = _value(report, "Omega_b")
+    nominal = min(NOMINAL_HZ, key=lambda f: abs(2 * math.pi * f / (omega_b or 1.0) - 1))
+    if omega_b and abs(2 * math.pi * nominal / omega_b - 1) <= 0.02:
         speed = repr(2 * math.pi * nominal)  # the system's frequency: known, not fitted
     else:
-        speed = p(omega_b)
+        speed = p(omega_b or 1.0)
     swing = f"{p(1 / m)} * (P_m - P_e)" + (
-        f" + {p(-value('D') / m)} * (omega - 1)" if damping else ""
+        f" + {p(-(_value(report, 'D') or 0.0) / m)} * (omega - 1)" if damping else ""
     )
     t_d0, t_q0, t_q02 = value("T'_d0"), value("T'_q0"), value("T''_q0")
     x_d, x_q = value("x_d - x'_d"), value("x_q - x'_q - gamma_q")
@@ -586,13 +590,39 @@ class StandardFit:
             standard record simulates).
         machine: the standard record's values (:func:`standard_machine` of ``model``).
         report: the refit by simulation (:func:`jaxdmd.simfit.refit_simulation`'s report:
-            ``kept``, the left-out and in-sample errors) and ``"from"``: ``"refit"`` or
-            ``"read off"`` (the discovered values tied, the refit not kept).
+            ``kept``, the left-out and in-sample errors), ``"from"``: ``"refit"`` or ``"least
+            squares"`` (the equation-error fit, the refit not kept), and ``"projected"`` where
+            the discovered equations were not all of the family's form (what they have that the
+            record leaves out).
     """
 
     model: Any
     machine: StandardMachine
     report: dict[str, Any]
+
+
+def _equation_error_fit(eqs: Any, data: Sequence[Any], targets: Mapping[str, list]) -> Any:
+    """``eqs`` (lines linear in their parameters) fitted by least squares to ``targets``
+    (per output, one array per recording of ``data``; an output without targets is left out),
+    each output's residual scaled by its target's spread. Returns the equations refitted."""
+    import jax
+
+    sk = eqs.skeleton()
+    variables = {n: np.concatenate([np.asarray(ds[n]) for ds in data]) for n in sk.arguments}
+    rows = [j for j, t in enumerate(eqs.contract.targets) if t in targets]
+    y = np.stack([np.concatenate(targets[eqs.contract.targets[j]]) for j in rows])
+
+    def predict(p: Any) -> Any:
+        return sk(variables, p)[np.asarray(rows)]
+
+    p0 = np.zeros(len(eqs.params))
+    offset = np.asarray(predict(p0))
+    jac = np.asarray(jax.jacfwd(predict)(p0))  # exact: the lines are linear in p
+    scale = 1.0 / np.maximum(np.std(y, axis=1, keepdims=True), 1e-12)
+    a = (jac * scale[..., None]).reshape(-1, len(p0))
+    b = ((y - offset) * scale).ravel()
+    theta, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return dataclasses.replace(eqs, params=tuple(float(x) for x in theta))
 
 
 def fit_standard(
@@ -603,43 +633,89 @@ def fit_standard(
     config: Any = None,
     assume: Mapping[str, float] | None = None,
 ) -> StandardFit:
-    """The standard model ``discovery`` maps to, its parameters tied as the family ties them
-    (:func:`tied_source`) and fitted together by how the model simulates the training
-    recordings (:func:`jaxdmd.simfit.refit_simulation`: closed and with the measured algebraic
-    variables played in, kept only if the left-out error improves).
+    """The standard PSAT 5.1 machine (GENROU in the records) nearest to ``discovery``, its
+    parameters tied as the family ties them (:func:`tied_source`) and fitted to the training
+    recordings: first by least squares on the equations (the states smoothed with the
+    discovered state equations, :func:`jaxdmd.refine.model_states`, their derivatives
+    estimated; the measured algebraic variables), then together by how the model simulates
+    the recordings (:func:`jaxdmd.simfit.refit_simulation`: closed and with the measured
+    algebraic variables played in; kept where it simulates them better, its left-out error
+    reported).
 
     A discovered model holds several estimates of one parameter (1/T'_d0 from v_f and from
     e'_q, each stator line its own reactance, a power line built from current and voltage
-    lines of its own, small stand-in terms) and a standard record holds one; the record read
-    off the discovered lines then simulates a little differently from the discovered model.
-    Fitted as a whole, the record's values are those with which the standard model itself
-    simulates the recordings best. ``played_from``, ``config``: as for ``refit_simulation``.
-    Raises :class:`ExportError` where the model has no standard family or the family has no
-    tied form yet (only ``psat-5.1`` has)."""
+    lines of its own) and small stand-in terms; a standard record holds one value each and no
+    stand-in. Read off the lines, the record then simulates differently from the discovered
+    model and from the recordings. Fitted as a whole, its values are those with which the
+    standard model itself simulates the recordings best. A discovery with PSAT 5.1's states
+    whose equations are not all of the family's form (a stand-in term, a missing one) is
+    projected on the family the same way; ``report["projected"]`` then says what the record
+    leaves out. ``played_from``, ``config``: as for ``refit_simulation`` (``played_from``
+    default: the model-smoothed recordings). Raises :class:`ExportError` where the states are
+    not PSAT 5.1's or the recordings lack a channel the standard model needs."""
     from jaxdmd.pipeline import loads
     from jaxdmd.refine import model_states
+    from jaxdmd.select import SelectionConfig
     from jaxdmd.simfit import refit_simulation
 
-    m = standard_machine(discovery, assume)
+    states = tuple(discovery.de.contract.targets)
+    if sorted(states) != sorted(PSAT_STATES):
+        raise ExportError(
+            f"a standard model is fitted for PSAT 5.1's states {list(PSAT_STATES)} only (this "
+            f"model's: {list(states)}); export the record as identified or the module ('py')"
+        )
+    report = physical_parameters(discovery.de, getattr(discovery, "ae", None))
+    try:
+        standard_machine(report, assume)
+        projected = None
+    except ExportError as err:
+        projected = str(err).split(": no standard record")[0]
+    tied = loads(tied_source(report), "<tied standard model>")
+    assert tied.ae is not None
+    needed = {*tied.de.skeleton().arguments, *tied.ae.skeleton().arguments}
+    missing = sorted(n for n in needed if any(n not in ds for ds in train))
+    if missing:
+        raise ExportError(f"the recordings lack {missing}, which the standard model needs")
     if played_from is None:  # initial states and played-in channels less noisy than measured
         try:
             played_from = [e.dataset for e in model_states(discovery.de, train)]
         except (ValueError, np.linalg.LinAlgError):
-            played_from = None
-    tied = loads(tied_source(m.report), "<tied standard model>")  # type: ignore[arg-type]
-    de, ae_fit, report = refit_simulation(tied.de, tied.ae, train, played_from, config)
-    model = dataclasses.replace(tied, de=de, ae=ae_fit, report={"standard_fit": report})
-    report = {**report, "from": "refit" if report.get("kept") == "refit" else "read off"}
-    machine = standard_machine(model, assume)
-    note = (
-        f"parameters tied as {m.report.family} ties them and fitted by simulation to "  # type: ignore[union-attr]
-        f"{len(train)} recording(s)"
-        if report["from"] == "refit"
-        else f"parameters tied as {m.report.family} ties them (first estimates; the refit by "  # type: ignore[union-attr]
-        f"simulation was not kept: {report.get('kept')})"
+            played_from = list(train)
+    smoothed = [ds.with_estimated_derivatives() for ds in played_from]
+    de0 = _equation_error_fit(
+        tied.de, smoothed, {s: [ds.derivative(s) for ds in smoothed] for s in PSAT_STATES}
     )
-    machine = dataclasses.replace(machine, notes=(note, *machine.notes))
-    return StandardFit(model, machine, report)
+    regressors = [
+        sm.with_values({n: ds[n] for n in ("V", "theta")})
+        for sm, ds in zip(smoothed, train, strict=True)
+    ]
+    measured = {
+        t: [np.asarray(ds[t]) for ds in train]
+        for t in tied.ae.contract.targets
+        if all(t in ds for ds in train)
+    }
+    ae0 = _equation_error_fit(tied.ae, regressors, measured)
+    # the structure is the family's, fixed and small: its output-error fit is the better
+    # estimator (consistent where the model is right), so it is kept wherever it simulates the
+    # training recordings better; its left-out error is reported, not used as a guard
+    config = dataclasses.replace(config or SelectionConfig(), tolerance=-1.0)
+    de, ae, fit = refit_simulation(de0, ae0, train, played_from, config)
+    model = dataclasses.replace(tied, de=de, ae=ae, report={"standard_fit": fit})
+    fit = {**fit, "from": "refit" if fit.get("kept") == "refit" else "least squares"}
+    if projected:
+        fit["projected"] = projected
+    machine = standard_machine(model, assume)
+    how = (
+        f"fitted by simulation to {len(train)} recording(s)"
+        if fit["from"] == "refit"
+        else f"fitted by least squares to {len(train)} recording(s) (the refit by simulation was "
+        f"not kept: {fit.get('kept')})"
+    )
+    notes = [f"PSAT 5.1's parameters tied as the family ties them, {how}"]
+    if projected:
+        notes.append(f"projected on PSAT 5.1: {projected}")
+    machine = dataclasses.replace(machine, notes=(*notes, *machine.notes))
+    return StandardFit(model, machine, fit)
 
 
 # ----------------------------------------------------------------------------------------------
