@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ast
 import copy
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -85,11 +86,15 @@ def function_def(source: str) -> ast.FunctionDef:
     return defs[0]
 
 
+@functools.lru_cache(maxsize=4096)
 def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], ...]]:
     """Split a checked skeleton into self-contained output lines.
 
     Returns the lines and, for each line, the original parameter indices in the order of the
     line's new indices (so ``params[list(mapping[j])]`` are line ``j``'s fitted parameters).
+    Memoised by source (the selection splits the same few hundred sources thousands of times):
+    the lines are shared, so their expressions are never changed in place (every transform in
+    the package works on a copy).
     """
     fn = function_def(source)
     env: dict[str, ast.expr] = {}
