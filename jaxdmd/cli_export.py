@@ -36,11 +36,13 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--data",
-        nargs="+",
+        nargs="*",
         metavar="FILE",
-        help="the training recordings: the standard records then hold the standard model "
-        "fitted as a whole to them (its parameters tied as its family ties them; also written "
-        "as standard_model.py); default: the values read off the discovered lines",
+        help="fit the standard records to training recordings: the standard model fitted as a "
+        "whole (its parameters tied as its family ties them; also written as "
+        "standard_model.py); with no FILE, to the run's own (read from RUN_DIR/run.json: its "
+        "files, or the benchmark simulated again); without --data the records hold the values "
+        "read off the discovered lines",
     )
     parser.add_argument("--bus", type=int, default=1, help="the .dyr record's bus number")
     parser.add_argument("--id", default="1", help="the .dyr record's machine id")
@@ -56,6 +58,28 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
             "channel roles (of the --data columns: for a CSV without a sidecar, or to override it)"
         )
     )
+
+
+def run_recordings(run: Path) -> list:
+    """The training recordings of the discovery in ``run`` (its ``run.json``: the data files
+    with the roles it was given, or the benchmark simulated again with its generator, operating
+    points, noise and seed)."""
+    import json
+
+    from jaxdmd.report import Progress
+    from jaxdmd.run import RUN_KEYS, parse_args, recordings
+
+    try:
+        saved = json.loads((run / "run.json").read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(
+            f"--data without files needs the run's {run / 'run.json'} ({err}); give the files"
+        ) from None
+    args = parse_args(["discover"])
+    for key in RUN_KEYS:
+        setattr(args, key, saved.get(key, getattr(args, key)))
+    train, _, _ = recordings(args, Progress())
+    return train
 
 
 def _fit_line(fit: dict) -> str:
@@ -91,6 +115,8 @@ def run_export(args: argparse.Namespace) -> int:
         from jaxdmd.cli_diagnose import load_recordings
 
         fitted_to = load_recordings(args.data, args)
+    elif args.data is not None:  # --data alone: the run's own training recordings
+        fitted_to = run_recordings(run if run.is_dir() else run.parent)
     written = export(
         discovery, out, args.format, bus=args.bus, machine_id=args.id, andes=andes,
         fitted_to=fitted_to,

@@ -622,3 +622,13 @@ def test_cli_export_fits_the_record_to_the_given_recordings(tmp_path, capsys, bu
     fitted = jaxdmd.load(run / "export" / "standard_model.py")
     assert standard_machine(fitted).params["T'_d0"] == pytest.approx(TD0, rel=0.01)
     assert "standard_model" not in export(jaxdmd.load(run), tmp_path / "plain", ["dyr"])
+    # --data alone: the run's own recordings, here the benchmark simulated again from run.json
+    assert main(["export", str(run), "--format", "dyr", "--data", "--out", str(tmp_path)]) == 2
+    assert "run.json" in capsys.readouterr().err
+    (run / "run.json").write_text(json.dumps({"generator": 31, "operating_points": 4,
+                                              "noise": 0.01, "seed": 0}))  # fmt: skip
+    own = ["export", str(run), "--format", "dyr", "--data", "--out", str(tmp_path / "own")]
+    assert main(own) == 0
+    assert (tmp_path / "own" / "standard_model.py").read_text() == (
+        run / "export" / "standard_model.py"
+    ).read_text()
