@@ -424,6 +424,36 @@ def test_andes_reads_the_dyr_records(tmp_path):
     assert genrou[2] == pytest.approx(TD0, rel=1e-3) and genrou[6] == pytest.approx(PH, rel=1e-3)
 
 
+def andes_genrou_recording(machine, path, fault=(1.0, 1.15)) -> Dataset:
+    """ANDES's fault simulation of ``machine`` as GENROU (5 pu over a 0.05 pu line) as a
+    recording in PSAT 5.1's channels; e'_d, which GENROU does not hold, as a placeholder for
+    ``at_equilibrium`` to solve."""
+    path.write_text(json.dumps(andes_case(machine, p0=5.0, v0=1.0, x_line=0.05, fault=fault)))
+    ss = andes_run(path)
+    ts, g = ss.dae.ts, ss.GENROU
+    channels = {
+        "delta": ts.x[:, g.delta.a[0]], "omega": ts.x[:, g.omega.a[0]],
+        "e_qp": ts.x[:, g.e1q.a[0]], "e_dpp": ts.y[:, g.psi2q.a[0]],
+        "e_dp": np.zeros(len(ts.t)),  # GENROU has no PSAT e'_d: solved for equilibrium
+        "P_m": ts.y[:, g.tm.a[0]], "v_f": ts.y[:, g.vf.a[0]], "P_e": ts.y[:, g.te.a[0]],
+        "Q_e": ts.y[:, g.Qe.a[0]], "V": ts.y[:, g.v.a[0]], "theta": ts.y[:, g.a.a[0]],
+    }  # fmt: skip
+    roles = {s: "state" for s in ("delta", "omega", "e_qp", "e_dp", "e_dpp")}
+    roles |= {"P_m": "input", "v_f": "input", "P_e": "algebraic", "Q_e": "algebraic"}
+    roles |= {"V": "boundary", "theta": "boundary"}
+    return as_recording(ss, channels, roles, events=fault)
+
+
+def change_r2(rec: Dataset, sim) -> dict[str, float]:
+    """R^2 of each state's (and P_e's) change from its initial value, ``sim`` against ``rec``."""
+    scores = {}
+    for s in ("delta", "omega", "e_qp", "e_dpp", "P_e"):
+        want = np.asarray(rec[s])
+        got = np.asarray(sim.algebraic[s] if s == "P_e" else sim[s])
+        scores[s] = r2(want - want[0], got - got[0])
+    return scores
+
+
 def test_andes_simulates_an_untied_discovered_psat_51_machine_as_jaxdmd_does(tmp_path):
     """A discovered model's coefficients are not tied as its family ties them: here the PSAT
     5.1 machine with its field-voltage gain 1 % off 1/T'_d0, its mechanical-power gain 0.2 %
@@ -450,23 +480,7 @@ def test_andes_simulates_an_untied_discovered_psat_51_machine_as_jaxdmd_does(tmp
         de=dataclasses.replace(exact.de, params=tuple(de)),
         ae=dataclasses.replace(exact.ae, params=tuple(ae)),
     )
-    fault = (1.0, 1.15)
-    path = tmp_path / "genrou.json"
-    path.write_text(json.dumps(andes_case(standard_machine(d), p0=5.0, v0=1.0, x_line=0.05,
-                                          fault=fault)))  # fmt: skip
-    ss = andes_run(path)
-    ts, g = ss.dae.ts, ss.GENROU
-    channels = {
-        "delta": ts.x[:, g.delta.a[0]], "omega": ts.x[:, g.omega.a[0]],
-        "e_qp": ts.x[:, g.e1q.a[0]], "e_dpp": ts.y[:, g.psi2q.a[0]],
-        "e_dp": np.zeros(len(ts.t)),  # GENROU has no PSAT e'_d: solved for equilibrium
-        "P_m": ts.y[:, g.tm.a[0]], "v_f": ts.y[:, g.vf.a[0]], "P_e": ts.y[:, g.te.a[0]],
-        "V": ts.y[:, g.v.a[0]], "theta": ts.y[:, g.a.a[0]],
-    }  # fmt: skip
-    roles = {s: "state" for s in ("delta", "omega", "e_qp", "e_dp", "e_dpp")}
-    roles |= {"P_m": "input", "v_f": "input", "P_e": "algebraic"}
-    roles |= {"V": "boundary", "theta": "boundary"}
-    rec = as_recording(ss, channels, roles, events=fault)
+    rec = andes_genrou_recording(standard_machine(d), tmp_path / "genrou.json")
     free = ("delta", "e_qp", "e_dp", "e_dpp", "P_m", "v_f")
     start, report = at_equilibrium(d.de, rec, free, hold=("P_e",), ae=d.ae)
     assert report["residual"]["after"] < 1e-8 * report["residual"]["before"]
@@ -474,11 +488,7 @@ def test_andes_simulates_an_untied_discovered_psat_51_machine_as_jaxdmd_does(tmp
     assert report["solved"]["v_f"] != pytest.approx(float(rec["v_f"][0]), rel=5e-3)
     sim = d.simulate(start)
     assert not sim.diverged
-    scores = {}
-    for s in ("delta", "omega", "e_qp", "e_dpp", "P_e"):
-        want = np.asarray(rec[s])
-        got = np.asarray(sim.algebraic[s] if s == "P_e" else sim[s])
-        scores[s] = r2(want - want[0], got - got[0])
+    scores = change_r2(rec, sim)
     print("R^2 ANDES vs jaxdmd (untied):", {k: f"{v:.6f}" for k, v in scores.items()})
     assert all(v >= 0.999 for v in scores.values()), scores
     # the same states with ANDES's P_m and v_f played in: the model drifts off
@@ -575,34 +585,14 @@ def test_andes_simulates_the_fitted_standard_record_as_jaxdmd_does(
     from jaxdmd.rollout import at_equilibrium
 
     _, fit = standard_fit_of_untied
-    fault = (1.0, 1.15)
-    path = tmp_path / "genrou.json"
-    path.write_text(json.dumps(andes_case(fit.machine, p0=5.0, v0=1.0, x_line=0.05,
-                                          fault=fault)))  # fmt: skip
-    ss = andes_run(path)
-    ts, g = ss.dae.ts, ss.GENROU
-    channels = {
-        "delta": ts.x[:, g.delta.a[0]], "omega": ts.x[:, g.omega.a[0]],
-        "e_qp": ts.x[:, g.e1q.a[0]], "e_dpp": ts.y[:, g.psi2q.a[0]],
-        "e_dp": np.zeros(len(ts.t)),  # GENROU has no PSAT e'_d: solved for equilibrium
-        "P_m": ts.y[:, g.tm.a[0]], "v_f": ts.y[:, g.vf.a[0]], "P_e": ts.y[:, g.te.a[0]],
-        "Q_e": ts.y[:, g.Qe.a[0]], "V": ts.y[:, g.v.a[0]], "theta": ts.y[:, g.a.a[0]],
-    }  # fmt: skip
-    roles = {s: "state" for s in ("delta", "omega", "e_qp", "e_dp", "e_dpp")}
-    roles |= {"P_m": "input", "v_f": "input", "P_e": "algebraic", "Q_e": "algebraic"}
-    roles |= {"V": "boundary", "theta": "boundary"}
-    rec = as_recording(ss, channels, roles, events=fault)
+    rec = andes_genrou_recording(fit.machine, tmp_path / "genrou.json")
     free = ("delta", "e_qp", "e_dp", "e_dpp", "P_m", "v_f")
     start, _ = at_equilibrium(fit.model.de, rec, free, hold=("P_e", "Q_e"), ae=fit.model.ae)
     for s in ("delta", "e_qp", "e_dpp", "P_m", "v_f"):  # the same power flow: the same start
         assert float(start[s][0]) == pytest.approx(float(rec[s][0]), rel=1e-6, abs=1e-9), s
     sim = fit.model.simulate(start)
     assert not sim.diverged
-    scores = {}
-    for s in ("delta", "omega", "e_qp", "e_dpp", "P_e"):
-        want = np.asarray(rec[s])
-        got = np.asarray(sim.algebraic[s] if s == "P_e" else sim[s])
-        scores[s] = r2(want - want[0], got - got[0])
+    scores = change_r2(rec, sim)
     print("R^2 ANDES vs jaxdmd (fitted record):", {k: f"{v:.8f}" for k, v in scores.items()})
     assert all(v >= 0.99999 for v in scores.values()), scores
 
