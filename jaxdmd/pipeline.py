@@ -644,6 +644,7 @@ def discover(
 
     ae = ae_state = None
     ae_seconds = 0.0
+    regressors: Sequence[Dataset] = train  # the recordings with the states estimated, if they are
     if not config.algebraic:
         report["ae_skipped"] = "--skip-ae"
     elif not any(v.role == "algebraic" for v in de.contract.library):
@@ -746,9 +747,26 @@ def discover(
         report["llm"] = stats()
     report["wall_time_s"] = de_seconds + ae_seconds
     result = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state, report=report)
+    report["modes"] = _modes(result, regressors)
     if test:
         report["test"] = result.held_out(test)
     return result
+
+
+def _modes(model: Discovery, recordings: Sequence[Dataset]) -> list[dict[str, Any]]:
+    """The model's small-signal modes at each recording's first sample
+    (:func:`jaxdmd.rollout.modes`: closed by the algebraic equations where there are; an entry
+    with ``error`` where the Jacobian is not finite)."""
+    from jaxdmd.rollout import modes
+
+    out: list[dict[str, Any]] = []
+    for i, ds in enumerate(recordings):
+        name = ds.label or f"#{i + 1}"
+        try:
+            out.append({"recording": name, **modes(model.de, ds, ae=model.ae)})
+        except ValueError as err:
+            out.append({"recording": name, "error": str(err)})
+    return out
 
 
 class Judge:

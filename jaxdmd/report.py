@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,12 +36,38 @@ def equations_markdown(discovery: Discovery) -> str:
         lines += ["| equation | term | share of the searches |", "|---|---|---|"]
         for target, terms in frequency.items():
             lines += [f"| d{target}/dt | `{t}` | {share:.2f} |" for t, share in terms.items()]
+    lines += modes_section(discovery.report.get("modes") or [])
     test = discovery.report.get("test")
     if test:
         n = next(iter(test.values()))["n_recordings"]
         lines += ["", f"## Held-out rollouts ({n} recording(s), means over them)", ""]
         lines += rollout_table(test).splitlines()
     return "\n".join(lines) + "\n"
+
+
+def modes_section(modes: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: the model's small-signal modes at each training recording's operating
+    point (:func:`jaxdmd.rollout.modes`), the least damped first."""
+    if not modes:
+        return []
+    lines = ["", "## Small-signal modes at the recorded operating points", ""]
+    lines += [
+        "The model linearised at each training recording's first sample (the algebraic "
+        "equations closed, inputs and terminal voltage held): its largest real part and its "
+        "oscillatory modes.",
+        "",
+        "| recording | largest real part [1/s] | stable | oscillatory: f [Hz] (damping ratio) |",
+        "|---|---|---|---|",
+    ]
+    for m in modes:
+        if "error" in m:
+            lines.append(f"| {m['recording']} | - | - | {m['error']} |")
+            continue
+        osc = sorted(m["oscillatory"], key=lambda o: o["damping_ratio"])
+        text = ", ".join(f"{o['frequency_hz']:.3g} ({o['damping_ratio']:.3g})" for o in osc)
+        stable = "yes" if m["max_real"] < 0 else "**no**"
+        lines.append(f"| {m['recording']} | {m['max_real']:.4g} | {stable} | {text or '-'} |")
+    return lines
 
 
 def equation_sections(*equations: Equations | None) -> list[str]:

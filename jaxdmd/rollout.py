@@ -63,6 +63,7 @@ __all__ = [
     "fault_window",
     "interpolate",
     "metrics",
+    "modes",
     "play_in_knots",
     "r2",
     "rollout",
@@ -524,6 +525,64 @@ def rollout(
         status=status,
         n_steps=int(n_steps),
     )
+
+
+def modes(
+    de: Block | _EquationsLike,
+    data: Dataset,
+    *,
+    ae: Block | _EquationsLike | Sequence[Block | _EquationsLike] | None = None,
+    mode: Mode = "dae",
+    at: int = 0,
+) -> dict[str, Any]:
+    """The model's small-signal modes at the operating point of ``data``'s sample ``at``
+    (default the first: a recording's pre-disturbance steady state): the eigenvalues of the
+    Jacobian of the state derivatives with respect to the states there, the algebraic
+    variables closed by ``ae`` (``mode="dae"``; with ``"de"`` they are played in as recorded and
+    held), the inputs and the boundary held at their recorded values.
+
+    Returns ``eigenvalues`` (``[re, im]`` in 1/s, sorted by real part, largest first),
+    ``max_real`` (the largest real part: above zero the linearised model is unstable),
+    ``oscillatory``: per complex pair (``im > 0``) its ``frequency_hz`` and ``damping_ratio``
+    (-re/|lambda|), and ``rates``: each state's derivative there times the recording's duration
+    over the state's range (near zero where the model's equations vanish at a recorded steady
+    state; of order one or more where the model would drift off it)."""
+    de_b = as_block(de)
+    ae_list = _ae_blocks(ae)
+    played, _ = _prepare(de_b, ae_list, data, mode)
+    states = de_b.targets
+    x0 = jnp.asarray([float(np.asarray(data[n])[at]) for n in states])
+    u0 = jnp.asarray([float(np.asarray(data[n])[at]) for n in played])
+    de_p = jnp.asarray(de_b.params)
+    ae_p = tuple(jnp.asarray(b.params) for b in ae_list)
+
+    def rates(x: jax.Array) -> jax.Array:
+        env = _environment(x, u0, states, played, ae_list, ae_p)
+        dx = de_b.fn(*(env[a] for a in de_b.arguments), de_p)
+        return jnp.stack([jnp.asarray(d, dtype=x.dtype) for d in dx])
+
+    jac = np.asarray(jax.jacfwd(rates)(x0), dtype=np.float64)
+    if not np.all(np.isfinite(jac)):
+        raise ValueError("the model's Jacobian at the operating point is not finite")
+    eig = np.linalg.eigvals(jac)
+    eig = eig[np.lexsort((-eig.imag, -eig.real))]
+    duration = float(np.asarray(data.t)[-1] - np.asarray(data.t)[0])
+    scale = np.array([max(float(np.ptp(np.asarray(data[n]))), 1e-12) for n in states])
+    drift = np.asarray(rates(x0)) * duration / scale
+    return {
+        "at_s": float(np.asarray(data.t)[at]),
+        "eigenvalues": [[float(v.real), float(v.imag)] for v in eig],
+        "max_real": float(np.max(eig.real)),
+        "oscillatory": [
+            {
+                "frequency_hz": float(v.imag / (2 * np.pi)),
+                "damping_ratio": float(-v.real / abs(v)),
+            }
+            for v in eig
+            if v.imag > 0
+        ],
+        "rates": {n: float(r) for n, r in zip(states, drift, strict=True)},
+    }
 
 
 def at_equilibrium(

@@ -71,6 +71,23 @@ def test_saved_model_loads_and_simulates_the_same(found, tmp_path):
     assert score["n_diverged"] == 0 and score["mean"]["r2"] > 0.9
 
 
+def test_the_discovered_models_modes_are_reported(found, tmp_path):
+    """The data's d w/dt = 0.02 u - 0.5 (w - 1) and d a/dt = 50 (w - 1): linearised, the
+    eigenvalues -0.5 and 0 (a is an integrator), at each recording's operating point."""
+    result, train = found
+    modes = result.report["modes"]
+    assert [m["recording"] for m in modes] == [ds.label for ds in train]
+    for m in modes:
+        real = sorted(e[0] for e in m["eigenvalues"])
+        assert real[0] == pytest.approx(-0.5, rel=0.1) and abs(real[1]) < 0.02, real
+        assert m["oscillatory"] == []
+    result.save(tmp_path)
+    assert (
+        "## Small-signal modes at the recorded operating points"
+        in (tmp_path / "equations.md").read_text()
+    )
+
+
 def test_load_refuses_what_is_not_a_model(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         jaxdmd.load(tmp_path / "nothing")

@@ -224,6 +224,32 @@ def test_a_model_is_put_at_equilibrium_where_the_recording_starts(toy: Dataset) 
         at_equilibrium(de, toy, ("delta",), hold=("omega",), ae=ae)
 
 
+def test_the_modes_at_the_recorded_operating_point_are_the_linearised_models(toy: Dataset) -> None:
+    """The classical machine linearised at the recording's first sample: M s^2 + D s +
+    Omega_b K = 0 with K = P_max V cos(delta - theta) (the algebraic P_e closed); with P_e
+    played in and held ("de") the angle has no restoring force. A negative damping is
+    unstable, and a model whose P_max is 5 % off does not rest at the recorded steady state."""
+    from jaxdmd.rollout import modes
+
+    de, ae = _models()
+    k = PMAX * float(toy["V"][0]) * math.cos(float(toy["delta"][0] - toy["theta"][0]))
+    roots = np.roots([M, D, OMEGA_B * k])
+    m = modes(de, toy, ae=ae)
+    got = np.array([complex(re, im) for re, im in m["eigenvalues"]])
+    np.testing.assert_allclose(np.sort_complex(got), np.sort_complex(roots), rtol=1e-9)
+    (osc,) = m["oscillatory"]
+    assert osc["frequency_hz"] == pytest.approx(abs(roots[0].imag) / (2 * math.pi), rel=1e-9)
+    assert osc["damping_ratio"] == pytest.approx(D / (2 * math.sqrt(M * OMEGA_B * k)), rel=1e-9)
+    assert m["max_real"] == pytest.approx(-D / (2 * M), rel=1e-9) and m["max_real"] < 0
+    assert max(abs(r) for r in m["rates"].values()) < 1e-6  # at rest where the recording is
+    played = modes(de, toy, mode="de")
+    np.testing.assert_allclose(sorted(e[0] for e in played["eigenvalues"]), [-D / M, 0.0],
+                               atol=1e-12)  # fmt: skip
+    assert modes(_models(damping=-D)[0], toy, ae=ae)["max_real"] == pytest.approx(D / (2 * M))
+    off = modes(*_models(pmax=1.05 * PMAX)[:1], toy, ae=_models(pmax=1.05 * PMAX)[1])
+    assert abs(off["rates"]["omega"]) > 1.0
+
+
 def test_wrong_model_scores_worse(toy: Dataset) -> None:
     good = score(rollout(*_models()[:1], toy, ae=_models()[1]), toy)
     de, ae = _models(pmax=1.6 * PMAX)
