@@ -755,15 +755,16 @@ def discover(
 
 def _modes(model: Discovery, recordings: Sequence[Dataset]) -> list[dict[str, Any]]:
     """The model's small-signal modes at each recording's first sample
-    (:func:`jaxdmd.rollout.modes`: closed by the algebraic equations where there are; an entry
-    with ``error`` where the Jacobian is not finite)."""
+    (:func:`jaxdmd.rollout.modes`: closed by the algebraic equations where there are, else with
+    the measured algebraic variables held; an entry with ``error`` where that fails)."""
     from jaxdmd.rollout import modes
 
     out: list[dict[str, Any]] = []
     for i, ds in enumerate(recordings):
         name = ds.label or f"#{i + 1}"
         try:
-            out.append({"recording": name, **modes(model.de, ds, ae=model.ae)})
+            mode = "dae" if model.ae is not None else "de"  # without AE: measured, held
+            out.append({"recording": name, **modes(model.de, ds, ae=model.ae, mode=mode)})
         except ValueError as err:
             out.append({"recording": name, "error": str(err)})
     return out
