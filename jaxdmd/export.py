@@ -743,9 +743,7 @@ def _machine(
         if fitted_to:
             try:
                 fit = fit_standard(discovery, fitted_to, assume=assume)
-            except ExportError as err:
-                if "tied" not in str(err):
-                    raise
+            except ExportError as err:  # no tied form for it: the record as read off
                 written["standard_fit"] = {"from": "read off", "why": str(err)}
             else:
                 written["standard_model"] = write_module(fit.model, out / "standard_model.py")

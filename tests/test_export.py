@@ -397,6 +397,19 @@ def test_andes_simulates_the_exported_psat_51_machine_as_jaxdmd_does(tmp_path):
     assert all(v >= 0.99999 for v in scores.values()), scores
 
 
+def test_a_model_without_a_tied_form_is_exported_as_read_off_when_fitting(tmp_path):
+    """``fitted_to`` with a classical machine (no tied form: only PSAT 5.1's states have one):
+    the GENCLS record as read off the lines, and the reason in the report."""
+    d = load_text(tmp_path, classical_text())
+    t = np.linspace(0.0, 1.0, 11)
+    rec = Dataset.create(t, {"delta": t, "omega": 1 + 0 * t}, {"delta": "state", "omega": "state"})
+    written = export(d, tmp_path / "out", ["dyr"], fitted_to=[rec])
+    assert isinstance(written["dyr"], type(tmp_path)) and "standard_model" not in written
+    assert written["standard_fit"]["from"] == "read off"
+    assert "PSAT 5.1's states" in written["standard_fit"]["why"]
+    assert record_numbers(written["dyr"].read_text())[0] == "GENCLS"
+
+
 def test_classical_without_stator_lines_writes_gencls_but_no_andes_case(tmp_path):
     text = classical_text()
     d = load_text(tmp_path, text[: text.index("def algebraic")])
