@@ -215,6 +215,7 @@ def refit_simulation(
     config: select.SelectionConfig | None = None,
     *,
     max_steps: int = 200,
+    fold_params: bool = False,
 ) -> tuple[Equations, Equations, dict[str, Any]]:
     """The state and algebraic equations' parameters fitted to how the model simulates the
     training recordings, kept only if that lowers the left-out simulation error.
@@ -229,7 +230,8 @@ def refit_simulation(
     (``"refit"`` or why not), what was left out (``held_out``: ``"recordings"`` or, with one
     recording, ``"time blocks (4)"``), the mean left-out NRMSE of the refit and the in-sample
     NRMSE of the given parameters on the same recordings or blocks (``loro``), the in-sample
-    NRMSE before and after, and the seconds.
+    NRMSE before and after, and the seconds. ``fold_params``: also each left-out fold's fitted
+    parameters (``report["fold_params"]``, DE then AE, one list per fold; for a jackknife).
     """
     import optimistix as optx
 
@@ -265,6 +267,9 @@ def refit_simulation(
         return solution.value, solution.stats["num_steps"]
 
     b = len(train)
+    folds: list[list[float]] = []
+    if fold_params:
+        report["fold_params"] = folds
     if b > 1:
         report["held_out"] = "recordings"
         # each recording left out: fitted on the others from the given parameters, simulated
@@ -272,6 +277,7 @@ def refit_simulation(
         for i in range(b):
             weight = jnp.asarray(np.arange(b) != i, dtype=theta0.dtype)
             theta, _ = fit(theta0, weight)
+            folds.append([float(x) for x in np.asarray(theta)])
             err = sim.errors(theta)[:, i]
             left_out.append(float(np.mean(err)) if np.all(np.isfinite(err)) else float("inf"))
         old = float(np.mean(before))
@@ -296,6 +302,7 @@ def refit_simulation(
             weight = np.ones((1, t0.size))
             weight[0, start:stop] = 0.0
             theta, _ = fit(theta0, jnp.asarray(weight, dtype=theta0.dtype))
+            folds.append([float(x) for x in np.asarray(theta)])
             err = held.errors(theta)[:, i]
             left_out.append(float(np.mean(err)) if np.all(np.isfinite(err)) else float("inf"))
         old = float(np.mean(given))

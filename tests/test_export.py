@@ -578,6 +578,11 @@ def test_the_standard_record_is_fitted_as_a_whole_to_the_recordings(
     assert all(e < 0.02 for e in errors.values()), errors  # measured: at most 1.7 % (T''_q0)
     assert errors["T'_d0"] < 0.005
     assert "fitted by simulation to 4 recording(s)" in fit.machine.comment()
+    se = fit.report["stderr"]  # the jackknife over the left-out recordings
+    print("jackknife standard errors:", {k: f"{v:.3g}" for k, v in se.items()})
+    for k, v in (("H", PH), ("T'_d0", TD0), ("x'_d", XDP5), ("x_q", XQ)):
+        assert 0 < se[k] < 0.05 * got[k] and abs(got[k] - v) < 4 * se[k], (k, got[k], se[k])
+    assert "D" not in se and "jackknife standard errors over the 4" in fit.machine.comment()
     # the tied model is the record: its lines give the record's values back
     assert standard_machine(fit.model).params == pytest.approx(got)
     test = bus_31_recordings[1]
