@@ -54,7 +54,8 @@ def modes_section(modes: Sequence[dict[str, Any]]) -> list[str]:
     lines += [
         "The model linearised at each training recording's first sample (the algebraic "
         "equations closed, inputs and terminal voltage held): its largest real part and its "
-        "oscillatory modes.",
+        "oscillatory modes. With the terminal voltage held the machine sees an infinitely "
+        "stiff bus: one that is stable in its network can be unstable here.",
         "",
         "| recording | largest real part [1/s] | stable | oscillatory: f [Hz] (damping ratio) |",
         "|---|---|---|---|",
