@@ -546,7 +546,11 @@ def modes(
     ``oscillatory``: per complex pair (``im > 0``) its ``frequency_hz`` and ``damping_ratio``
     (-re/|lambda|), and ``rates``: each state's derivative there times the recording's duration
     over the state's range (near zero where the model's equations vanish at a recorded steady
-    state; of order one or more where the model would drift off it)."""
+    state; of order one or more where the model would drift off it).
+
+    With the boundary (terminal voltage and angle) held, these are the modes of the machine on
+    an infinitely stiff bus, not of the machine in its network: a machine whose recordings are
+    stable can be unstable here (the benchmark's generator 30, x'_q < x'_d: +0.48 /s)."""
     de_b = as_block(de)
     ae_list = _ae_blocks(ae)
     played, _ = _prepare(de_b, ae_list, data, mode)
