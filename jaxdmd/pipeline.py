@@ -759,11 +759,11 @@ def _modes(model: Discovery, recordings: Sequence[Dataset]) -> list[dict[str, An
     the measured algebraic variables held; an entry with ``error`` where that fails)."""
     from jaxdmd.rollout import modes
 
+    mode = "dae" if model.ae is not None else "de"  # without AE: measured, held
     out: list[dict[str, Any]] = []
     for i, ds in enumerate(recordings):
         name = ds.label or f"#{i + 1}"
         try:
-            mode = "dae" if model.ae is not None else "de"  # without AE: measured, held
             out.append({"recording": name, **modes(model.de, ds, ae=model.ae, mode=mode)})
         except ValueError as err:
             out.append({"recording": name, "error": str(err)})

@@ -327,6 +327,22 @@ def _environment(
     return env
 
 
+def _rates(
+    de: Block,
+    x: jax.Array,
+    u: jax.Array,
+    played: tuple[str, ...],
+    ae: tuple[Block, ...],
+    de_p: jax.Array,
+    ae_p: tuple[jax.Array, ...],
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The state derivatives ``[S]`` at states ``x`` and played-in values ``u`` (the algebraic
+    variables computed by ``ae`` first), and the environment they were computed in."""
+    env = _environment(x, u, de.targets, played, ae, ae_p)
+    dx = de.fn(*(env[a] for a in de.arguments), de_p)
+    return jnp.stack([jnp.asarray(d, dtype=x.dtype) for d in dx]), env
+
+
 @functools.lru_cache(maxsize=64)
 def _compiled(
     de: Block,
@@ -341,10 +357,7 @@ def _compiled(
 
     def field_(s: jax.Array, x: jax.Array, args: Any) -> jax.Array:
         de_p, ae_p, T, Y, _ = args
-        u = interpolate(T, Y, s)
-        env = _environment(x, u, states, played, ae, ae_p)
-        dx = de.fn(*(env[a] for a in de.arguments), de_p)
-        return jnp.stack([jnp.asarray(d, dtype=x.dtype) for d in dx])
+        return _rates(de, x, interpolate(T, Y, s), played, ae, de_p, ae_p)[0]
 
     def blew_up(s: jax.Array, x: jax.Array, args: Any, **kwargs: Any) -> jax.Array:
         bound = args[4]
@@ -561,9 +574,7 @@ def modes(
     ae_p = tuple(jnp.asarray(b.params) for b in ae_list)
 
     def rates(x: jax.Array) -> jax.Array:
-        env = _environment(x, u0, states, played, ae_list, ae_p)
-        dx = de_b.fn(*(env[a] for a in de_b.arguments), de_p)
-        return jnp.stack([jnp.asarray(d, dtype=x.dtype) for d in dx])
+        return _rates(de_b, x, u0, played, ae_list, de_p, ae_p)[0]
 
     jac = np.asarray(jax.jacfwd(rates)(x0), dtype=np.float64)
     if not np.all(np.isfinite(jac)):
@@ -654,9 +665,8 @@ def at_equilibrium(
             x = x.at[i].set(z[k])
         for k, j in in_u:
             u = u.at[j].set(z[k])
-        env = _environment(x, u, states, played, ae_list, ae_p)
-        dx = de_b.fn(*(env[a] for a in de_b.arguments), de_p)
-        rates = jnp.stack([jnp.asarray(d, dtype=x.dtype) for d in dx]) / scale
+        dx, env = _rates(de_b, x, u, played, ae_list, de_p, ae_p)
+        rates = dx / scale
         if not hold:
             return rates
         held = jnp.stack([jnp.asarray(env[n], dtype=x.dtype) for n in hold])
