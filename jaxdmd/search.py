@@ -11,10 +11,12 @@ the samples, compiles them, fits the whole batch in one call, registers the resu
 archive, records the best score, and applies the paper's rules:
 
 - variable extension when the search stagnates: the best-score gain stayed <= epsilon for R
-  rounds (since the last extension) and the best score is <= -gamma. The JSON variable requests
-  of the top-k skeletons are read; a requested variable the data holds joins the variable
-  library; one it lacks is reported as a measurement to add;
-- termination when the best score stays above -gamma for R rounds, or after ``max_rounds``
+  rounds (since the last extension) and some equation's best loss is >= gamma (an exact
+  equation must not mask the others). The JSON variable requests of the top-k skeletons are
+  read; a requested variable the data holds joins the variable library; one it lacks is
+  reported as a measurement to add;
+- termination when every equation's best loss (over the archive: what the recombination of the
+  best lines reaches) stays below gamma for R rounds, or after ``max_rounds``
   (plus up to R rounds when a variable joined the library in the last R rounds: the round
   limit does not bind before a late variable had its chance).
 
@@ -119,6 +121,9 @@ class SearchState(eqx.Module):
     key: jax.Array
     config: SearchConfig = eqx.field(static=True)
     history: tuple[float, ...] = eqx.field(static=True, default=())
+    # per round, each equation's best loss so far: an exact equation must not mask the others
+    # (stopping and extension look at the worst of them, not at the best candidate's mean)
+    equation_best: tuple[tuple[float, ...], ...] = eqx.field(static=True, default=())
     joined: tuple[tuple[str, int], ...] = eqx.field(static=True, default=())
     missing: tuple[str, ...] = eqx.field(static=True, default=())
     iteration: int = eqx.field(static=True, default=0)
@@ -221,6 +226,7 @@ def init(
         key=key,
         config=config,
         history=(float(result.score),),
+        equation_best=(tuple(float(x) for x in result.losses),),
         joined=tuple((v.name, 0) for v in contract.library),
     )
 
@@ -307,7 +313,12 @@ def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, Ro
         archive = arc.reset_weak_islands(archive, reset_key)
     best = arc.best(archive).score
     state = replace_state(
-        state, archive=archive, key=key, history=(*state.history, best), iteration=round_
+        state,
+        archive=archive,
+        key=key,
+        history=(*state.history, best),
+        equation_best=(*state.equation_best, _equation_best(state, archive)),
+        iteration=round_,
     )
     state, joined, missing = _maybe_extend(state)
     state = _maybe_stop(state)
@@ -367,6 +378,46 @@ def _recombined(state: SearchState) -> tuple[Skeleton, int] | None:
     return skeleton, (islands[0] if islands else 0)
 
 
+PROGRESS = 0.5  # an equation whose best loss halved in the last R rounds is still progressing
+EXACT = 1e-12  # a loss below this is exact (the rest is rounding)
+
+
+def _equation_best(state: SearchState, archive: arc.Archive) -> tuple[float, ...]:
+    """Each equation's lowest loss so far (the archive's entries, and the rounds before)."""
+    previous = state.equation_best[-1] if state.equation_best else ()
+    rows = [e.losses for isl in archive.islands for e in isl.entries if len(e.losses)]
+    if not rows:
+        return tuple(previous)
+    now = np.min(np.asarray(rows, dtype=float), axis=0)
+    if len(previous) == len(now):
+        now = np.minimum(now, previous)
+    return tuple(float(x) for x in now)
+
+
+def _equation_rows(state: SearchState) -> list[tuple[float, ...]]:
+    """Per round, the equations' best losses (for a state written before they were kept: the
+    best score's mean loss, as one)."""
+    if len(state.equation_best) == len(state.history):
+        return [row or (0.0,) for row in state.equation_best]
+    return [(-h,) for h in state.history]
+
+
+def _worst(state: SearchState) -> list[float]:
+    """Per round, the largest of the equations' best losses."""
+    return [max(row) for row in _equation_rows(state)]
+
+
+def _progressing(state: SearchState) -> bool:
+    """Whether some equation's best loss fell by more than a factor ``1 / PROGRESS`` over the
+    last R rounds (losses below ``EXACT`` are exact: rounding is no progress)."""
+    rows = _equation_rows(state)
+    r = state.config.patience
+    if len(rows) <= r:
+        return True
+    then, now = rows[-r - 1], rows[-1]
+    return any(b < PROGRESS * a and a > EXACT for a, b in zip(then, now, strict=False))
+
+
 def _gains(state: SearchState) -> list[float]:
     history = state.history[state.last_extension :]
     return [b - a for a, b in itertools.pairwise(history)]
@@ -375,8 +426,8 @@ def _gains(state: SearchState) -> list[float]:
 def _maybe_extend(state: SearchState) -> tuple[SearchState, tuple[str, ...], tuple[str, ...]]:
     cfg = state.config
     gains = _gains(state)
-    best = state.history[-1]
-    if len(gains) < cfg.patience or max(gains[-cfg.patience :]) > cfg.epsilon or best > -cfg.gamma:
+    worst = _worst(state)[-1]
+    if len(gains) < cfg.patience or max(gains[-cfg.patience :]) > cfg.epsilon or worst < cfg.gamma:
         return state, (), ()
     entries = (e for isl in state.archive.islands for e in isl.entries)
     top = sorted(entries, key=lambda e: -settled(e.score))
@@ -420,12 +471,19 @@ def _distinct(entries: Sequence[arc.Entry]) -> list[arc.Entry]:
 
 def _maybe_stop(state: SearchState) -> SearchState:
     cfg = state.config
-    recent = state.history[-cfg.patience :]
-    if len(state.history) > cfg.patience and all(s > -cfg.gamma for s in recent):
+    recent = _worst(state)[-cfg.patience :]
+    if (
+        len(state.history) > cfg.patience
+        and all(s < cfg.gamma for s in recent)
+        and not _progressing(state)
+    ):
         return replace_state(
             state,
             done=True,
-            stop_reason=f"best score above -{cfg.gamma} for {cfg.patience} rounds",
+            stop_reason=(
+                f"every equation's loss below {cfg.gamma} for {cfg.patience} rounds, "
+                "none still falling"
+            ),
         )
     if state.iteration >= cfg.max_rounds:
         # a variable that joined in the last R rounds gets R rounds to be used: the round limit
@@ -670,6 +728,7 @@ def state_to_dict(state: SearchState) -> dict[str, object]:
         .astype(np.uint32)
         .tolist(),
         "history": list(state.history),
+        "equation_best": [list(row) for row in state.equation_best],
         "joined": [list(j) for j in state.joined],
         "missing": list(state.missing),
         "iteration": state.iteration,
@@ -703,6 +762,10 @@ def state_from_dict(
         key=jnp.asarray(np.asarray(data["key"], dtype=np.uint32)),
         config=config,
         history=tuple(float(x) for x in data["history"]),
+        equation_best=tuple(
+            tuple(float(x) for x in row)
+            for row in data.get("equation_best", [])  # type: ignore[union-attr]
+        ),
         joined=tuple((str(a), int(b)) for a, b in data["joined"]),
         missing=tuple(data["missing"]),
         iteration=int(data["iteration"]),

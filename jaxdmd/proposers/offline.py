@@ -225,7 +225,7 @@ def building_blocks(
     angles = [v.name for v in variables if v.unit == "rad"]
     blocks: list[str] = []
     for v in variables:
-        if v.unit == "rad":
+        if v.unit in ("rad", TIME):  # angles enter through sines and cosines, time as forcing
             continue
         per_unit = v.unit in ("pu", "") and v.name in data
         blocks.append(f"({v.name} - 1)" if per_unit and _near_one(data[v.name]) else v.name)
@@ -252,6 +252,85 @@ def term_pool(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> 
         f"{wrap(a)} * {wrap(b)}" for a, b in itertools.combinations_with_replacement(blocks, 2)
     ]
     return list(dict.fromkeys(pool))
+
+
+# the second tier: richer forms, offered for an equation only once the first (``term_pool``) has
+# nothing left that passes the admission bar there (simplest forms first)
+DIMENSIONLESS = ("", "1")  # units whose values may enter a function other than a power
+TIME = "s"  # the unit of a time channel: periodic forcings sin(w t), cos(w t)
+# forms with one rate r fitted by the proposer (written as a literal once refined on the data)
+RATE_FORMS = (
+    "jnp.exp({r} * {v})",
+    "{v} * jnp.exp({r} * {v})",
+    "jnp.tanh({r} * {v})",
+    "{v} / (1 + jnp.abs({r} * {v}))",
+)
+TIME_FORMS = ("jnp.sin({r} * {v})", "jnp.cos({r} * {v})")
+_RATE_GRID = tuple(s * 2.0**k for s in (-1, 1) for k in range(-2, 2))  # x 1 / max|v|
+_CYCLES = tuple(2.0 ** (k / 2) for k in range(13))  # x 2 pi / duration: 1 to 64 cycles
+
+
+@dataclass(frozen=True)
+class Rated:
+    """A second-tier term with a rate: its form, variable and rate."""
+
+    form: str
+    variable: str
+    rate: float
+
+    @property
+    def term(self) -> str:
+        return self.form.format(r=_literal(self.rate), v=self.variable)
+
+
+def _literal(value: float) -> str:
+    return f"{value:.4g}"
+
+
+def _polynomial_blocks(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> list[str]:
+    """The level-one blocks that are a variable or its deviation (no function applied)."""
+    names = {v.name for v in variables if v.unit not in ("rad", TIME)}
+    blocks, _ = building_blocks(variables, data)
+    return [b for b in blocks if b in names or b.strip("()").split(" - ")[0] in names]
+
+
+def second_tier(
+    variables: Sequence[Variable], data: Mapping[str, np.ndarray], degree: int = 3
+) -> tuple[list[str], dict[str, Rated]]:
+    """Richer candidate terms: monomials of degree 3 to ``degree`` of the variables (and their
+    deviations); for dimensionless variables their sines and cosines, times each variable too,
+    and the rate forms of ``RATE_FORMS`` on a grid of rates; for a time channel (unit ``s``)
+    sines and cosines on a grid of frequencies. Returns the terms and the rated ones' forms
+    (their rates are refined on the data when drawn)."""
+    poly = _polynomial_blocks(variables, data)
+    terms = [
+        " * ".join(wrap(b) for b in combo)
+        for k in range(3, degree + 1)
+        for combo in itertools.combinations_with_replacement(poly, k)
+    ]
+    rated: dict[str, Rated] = {}
+    for v in variables:
+        if v.name not in data or v.unit == "rad":
+            continue
+        values = np.asarray(data[v.name], dtype=float)
+        if v.unit in DIMENSIONLESS:
+            trig = [f"jnp.sin({v.name})", f"jnp.cos({v.name})"]
+            terms += trig + [f"{wrap(b)} * {f}" for f in trig for b in poly]
+            scale = float(np.max(np.abs(values)))
+            if scale > 0:
+                for form in RATE_FORMS:
+                    for r in _RATE_GRID:
+                        item = Rated(form, v.name, float(f"{r / scale:.3g}"))
+                        rated[item.term] = item
+        elif v.unit == TIME:
+            span = float(np.ptp(values))
+            if span > 0:
+                for form in TIME_FORMS:
+                    for c in _CYCLES:
+                        item = Rated(form, v.name, float(f"{2 * np.pi * c / span:.3g}"))
+                        rated[item.term] = item
+    terms += list(rated)
+    return list(dict.fromkeys(terms)), rated
 
 
 def subset_errors(
@@ -310,6 +389,7 @@ class OfflineConfig:
     max_requests: int = 2  # variables requested per answer (each the best for its equation)
     min_request_gain: float = 1e-3  # NMSE drop a requested variable's best term must bring
     subset_size: int = 3  # the "subset" edit searches every subset of up to this many blocks
+    degree: int = 3  # the second tier's largest monomial degree (2: no monomials beyond pairs)
 
 
 class OfflineProposer:
@@ -351,6 +431,8 @@ class OfflineProposer:
         self.scale = self.targets.std(axis=1) + 1e-300
         self.catalog = tuple(catalog)
         self._cache: dict[str, np.ndarray | None] = {}
+        self._tiers: dict[tuple[Variable, ...], tuple[list[str], list[str]]] = {}
+        self._rated: dict[str, Rated] = {}
 
     @classmethod
     def for_problem(cls, problem: Problem, config: OfflineConfig | None = None) -> OfflineProposer:
@@ -370,21 +452,36 @@ class OfflineProposer:
 
     def column(self, term: str) -> np.ndarray | None:
         if term not in self._cache:
-            try:
-                n = len(next(iter(self.full.values())))
-                with np.errstate(all="ignore"):
-                    value = np.broadcast_to(
-                        evaluate(ast.parse(term, mode="eval"), self.full), (n,)
-                    ).astype(float)
-                if self.operator is not None:
-                    index, weight = self.operator
-                    value = np.sum(value[index] * weight, axis=1)
-                value = value[self.index] * self.root_w
-                ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
-                self._cache[term] = value if ok else None
-            except (ValueError, KeyError, TypeError, ZeroDivisionError):
-                self._cache[term] = None
+            self._cache[term] = self._evaluate(term)
         return self._cache[term]
+
+    def _evaluate(self, term: str) -> np.ndarray | None:
+        """The term's column on the subsample (after the operator, weighted); None if it is
+        not finite or identically zero."""
+        try:
+            n = len(next(iter(self.full.values())))
+            with np.errstate(all="ignore"):
+                value = np.broadcast_to(
+                    evaluate(ast.parse(term, mode="eval"), self.full), (n,)
+                ).astype(float)
+            if self.operator is not None:
+                index, weight = self.operator
+                value = np.sum(value[index] * weight, axis=1)
+            value = value[self.index] * self.root_w
+            ok = np.all(np.isfinite(value)) and np.std(value) + abs(np.mean(value)) > 0
+            return value if ok else None
+        except (ValueError, KeyError, TypeError, ZeroDivisionError):
+            return None
+
+    def tiers(self, variables: Sequence[Variable]) -> tuple[list[str], list[str]]:
+        """The first tier (:func:`term_pool`) and the second (:func:`second_tier`) for these
+        variables, built once per variable set."""
+        key = tuple(variables)
+        if key not in self._tiers:
+            extra, rated = second_tier(variables, self.data, self.config.degree)
+            self._rated.update(rated)
+            self._tiers[key] = (term_pool(variables, self.data), extra)
+        return self._tiers[key]
 
     def design(self, terms: Sequence[str]) -> np.ndarray:
         cols = [self.column(t) for t in terms]
@@ -440,14 +537,75 @@ class OfflineProposer:
 
     # -- operators -------------------------------------------------------------------------
 
-    def _add(self, rng, j, terms, pool, greedy=False) -> list[str]:
+    def _passes(self, j: int, terms: Sequence[str], term: str) -> bool:
+        """Whether adding ``term`` lowers equation j's held-out error by the admission bar."""
+        before = self.held_out(j, terms)
+        after = self.held_out(j, [*terms, term])
+        needed = max(self.config.min_gain, self.config.min_relative_gain * before)
+        return settled(before - after) >= settled(needed)
+
+    def _refine(self, j: int, terms: Sequence[str], term: str) -> str:
+        """A rated term with its rate fitted to equation j's residual (bounded, within a
+        factor sqrt 2 of the grid's rate for a frequency, 2 for a rate); other terms as they
+        are."""
+        from scipy.optimize import minimize_scalar
+
+        item = self._rated.get(term)
+        if item is None:
+            return term
+        x = self.design(terms)
+        y = self.targets[j]
+
+        def loss(log_rate: float) -> float:
+            rate = np.sign(item.rate) * np.exp(log_rate)
+            column = self._evaluate(Rated(item.form, item.variable, rate).term)
+            if column is None:
+                return np.inf
+            design = np.column_stack([x, column])
+            coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+            return float(np.sum((y - design @ coef) ** 2))
+
+        span = np.log(np.sqrt(2.0) if item.form in TIME_FORMS else 2.0)
+        centre = np.log(abs(item.rate))
+        found = minimize_scalar(
+            loss,
+            bounds=(centre - span, centre + span),
+            method="bounded",
+            options={"xatol": 1e-5},
+        )
+        rate = float(f"{np.sign(item.rate) * np.exp(found.x):.4g}")
+        refined = Rated(item.form, item.variable, rate)
+        self._rated[refined.term] = refined
+        return refined.term
+
+    def _siblings(self, terms: Sequence[str]) -> list[str]:
+        """For each periodic forcing in ``terms``, its quadrature partner at the same frequency
+        (a phase needs both)."""
+        out = []
+        for t in terms:
+            item = self._rated.get(t)
+            if item is not None and item.form in TIME_FORMS:
+                out += [Rated(f, item.variable, item.rate).term for f in TIME_FORMS]
+        return [t for t in dict.fromkeys(out) if t not in terms]
+
+    def _add(self, rng, j, terms, pool, greedy=False, extra=()) -> list[str]:
         terms = list(terms)
         if len(terms) >= self.config.max_terms:
             return terms
         free = [t for t in pool if t not in terms]
+        share = self.explained(j, terms, free)
+        if extra and (
+            not free
+            or share.max() <= NOTHING
+            or not self._passes(j, terms, free[ties.argmax(share)])
+        ):
+            # the first tier has nothing left for this equation: the second joins the draw
+            free += [
+                t for t in (*self._siblings(terms), *extra) if t not in terms and t not in free
+            ]
+            share = self.explained(j, terms, free)
         if not free:
             return terms
-        share = self.explained(j, terms, free)
         if greedy or rng.random() > self.config.explore:
             top = share.max()
             if top <= NOTHING:  # no term explains anything: rounding must not rank them
@@ -459,12 +617,10 @@ class OfflineProposer:
             )
         else:
             choice = int(rng.integers(len(free)))
-        before = self.held_out(j, terms)
-        after = self.held_out(j, [*terms, free[choice]])
-        needed = max(self.config.min_gain, self.config.min_relative_gain * before)
+        term = self._refine(j, terms, free[choice])
         lucky = not greedy and rng.random() < 0.1  # drawn whatever the comparison says
-        if settled(before - after) >= settled(needed) or lucky:
-            terms.append(free[choice])
+        if self._passes(j, terms, term) or lucky:
+            terms.append(term)
         return terms
 
     def _remove(self, rng, j, terms) -> list[str]:
@@ -542,7 +698,7 @@ class OfflineProposer:
     def answer(self, request: PromptRequest, rng: np.random.Generator) -> str:
         contract = request.contract
         variables = (*contract.states, *contract.library)
-        pool = term_pool(variables, self.data)
+        pool, extra = self.tiers(variables)
         parents = [(ex, parse_equations(ex.source)) for ex in request.examples]
         n_out = len(contract.targets)
         if not parents:
@@ -572,14 +728,14 @@ class OfflineProposer:
             if op == "subset":
                 terms = self._subset(rng, j, variables)
             elif op == "add":
-                terms = self._add(rng, j, terms, pool)
+                terms = self._add(rng, j, terms, pool, extra=extra)
             elif op == "grow":
                 for _ in range(int(rng.integers(1, self.config.grow_terms + 1))):
-                    terms = self._add(rng, j, terms, pool, greedy=True)
+                    terms = self._add(rng, j, terms, pool, greedy=True, extra=extra)
             elif op == "remove":
                 terms = self._remove(rng, j, terms)
             elif op == "swap":
-                terms = self._add(rng, j, self._remove(rng, j, terms), pool)
+                terms = self._add(rng, j, self._remove(rng, j, terms), pool, extra=extra)
             else:
                 terms = self._simplify(j, terms)
             terms = self._prune(j, terms)
@@ -617,6 +773,10 @@ class OfflineProposer:
         per_equation: dict[int, tuple[float, tuple[Variable, ...]]] = {}
         for group in groups:
             pool = [t for t in term_pool((*base, *group), self.data) if t not in base_pool]
+            if not pool:  # a variable with no first-tier term (a time): judged by its second
+                extra, rated = second_tier((*base, *group), self.data, self.config.degree)
+                names = {v.name for v in group}
+                pool = [t for t in extra if t in rated and rated[t].variable in names]
             for j, eq in enumerate(equations):
                 terms = list(eq.terms) if eq.opaque is None else ["1"]
                 _, _, loss = self.solve(j, terms)
