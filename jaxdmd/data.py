@@ -1063,6 +1063,13 @@ class Dataset(eqx.Module):
             label=self.label,
         )
 
+    def with_time(self, name: str = "time") -> Dataset:
+        """The recording with its time axis as an input channel (unit ``s``): a candidate
+        variable for a forcing that depends on time (the offline proposer offers sin(w t) and
+        cos(w t) of it, w fitted). Leave it out for an autonomous component: its equations do
+        not depend on when the recording started."""
+        return self.with_channels({name: np.asarray(self.t)}, {name: "input"}, {name: "s"})
+
     def window(self, t0: float, t1: float) -> Dataset:
         """The samples with ``t0 <= t <= t1`` (e.g. a held-out window), events inside kept.
 

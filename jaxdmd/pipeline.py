@@ -486,6 +486,10 @@ def _loop_summary(
         "rounds": state.iteration,
         "stop_reason": state.stop_reason,
         "best_score_history": list(state.history),
+        # each equation's best loss in the archive at the end (what stopping looks at)
+        "equation_best": dict(
+            zip(state.contract.targets, (state.equation_best or [()])[-1], strict=False)
+        ),
         "library": [{"name": n, "joined_round": r} for n, r in state.joined],
         "missing_measurements": list(state.missing),
         "targets": list(eq.contract.targets),

@@ -124,6 +124,10 @@ def add_discover_arguments(parser: argparse.ArgumentParser) -> None:
         help="fit the derivatives stored in --data as they are (exact ones, from a simulator); "
         "by default they are re-estimated from the states and the fit is matched to the "
         "estimator's smoothing")
+    add("--time", action="store_true",
+        help="offer the time since each recording's start as an input (unit s): for a forcing "
+        "that depends on time, sin(w t) and cos(w t) with w fitted; leave it out for an "
+        "autonomous component")
     add("--generator", type=int, default=31, help="benchmark generator bus (30-39)")
     add("--operating-points", type=int, default=4, help="benchmark training points")
     add("--noise", type=float, default=0.01, help="benchmark noise (share of range)")
@@ -212,8 +216,8 @@ def proposer_from_args(args: argparse.Namespace):
 
 
 RUN_KEYS = (
-    "data", "test_data", "given_derivatives", "generator", "operating_points", "noise", "rounds",
-    "prompts", "samples", "islands", "tau_c", "tau_l", "seed", "no_recombine", "weighted",
+    "data", "test_data", "given_derivatives", "time", "generator", "operating_points", "noise",
+    "rounds", "prompts", "samples", "islands", "tau_c", "tau_l", "seed", "no_recombine", "weighted",
     "skip_ae", "integral", "gamma", "refit_integral", "ae_bias_correction", "ae_states",
     "ae_joint", "subset_de", "subset_ae", *ROLE_KEYS,
 )  # fmt: skip
@@ -231,6 +235,8 @@ def recordings(args: argparse.Namespace, progress: Progress) -> tuple[list, list
 
         train = load_data(args.data, args)
         test = load_data(args.test_data, args) if args.test_data else []
+        if args.time:
+            train, test = [ds.with_time() for ds in train], [ds.with_time() for ds in test]
         return train, test, {"data": args.data, "test_data": args.test_data or []}
     from jaxdmd.grid import benchmark_protocol
 

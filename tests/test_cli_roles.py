@@ -171,3 +171,19 @@ def test_a_bad_events_flag_names_the_flag_and_the_value(csv, value, message):
         load_data([csv], args(*ROLE_ARGS, "--events", value))
     if "outside" in message:
         assert str(csv) in str(err.value)
+
+
+def test_time_flag_offers_the_time_as_an_input(csv):
+    """``--time``: each recording's time axis joins as an input of unit s (a forcing's argument);
+    without it no time channel."""
+    from jaxdmd.run import Progress, recordings
+
+    flags = ("--states", "x", "--inputs", "u", "--boundary", "V")
+    a = parse_args(["discover", "--data", str(csv), "--test-data", str(csv), *flags, "--time"])
+    train, test, _ = recordings(a, Progress())
+    for ds in (*train, *test):
+        assert ds.role("time") == "input" and ds.unit("time") == "s"
+        np.testing.assert_array_equal(np.asarray(ds["time"]), np.asarray(ds.t))
+    a = parse_args(["discover", "--data", str(csv), *flags])
+    (ds,), _, _ = recordings(a, Progress())
+    assert "time" not in ds.names

@@ -266,6 +266,7 @@ RATE_FORMS = (
     "{v} / (1 + jnp.abs({r} * {v}))",
 )
 TIME_FORMS = ("jnp.sin({r} * {v})", "jnp.cos({r} * {v})")
+COLLINEAR = 1e-2  # a second-tier term whose column lies within this of the others is refused
 _RATE_GRID = tuple(s * 2.0**k for s in (-1, 1) for k in range(-2, 2))  # x 1 / max|v|
 _CYCLES = tuple(2.0 ** (k / 2) for k in range(13))  # x 2 pi / duration: 1 to 64 cycles
 
@@ -545,9 +546,10 @@ class OfflineProposer:
         return settled(before - after) >= settled(needed)
 
     def _refine(self, j: int, terms: Sequence[str], term: str) -> str:
-        """A rated term with its rate fitted to equation j's residual (bounded, within a
-        factor sqrt 2 of the grid's rate for a frequency, 2 for a rate); other terms as they
-        are."""
+        """A rated term with its rate fitted to equation j's residual (bounded: within a
+        factor sqrt 2 of the grid's rate for a frequency; for a rate within a factor 2 and with
+        |r| max|x| between 1/8 and 4, where the form is not a polynomial in disguise); other
+        terms as they are."""
         from scipy.optimize import minimize_scalar
 
         item = self._rated.get(term)
@@ -565,11 +567,16 @@ class OfflineProposer:
             coef, *_ = np.linalg.lstsq(design, y, rcond=None)
             return float(np.sum((y - design @ coef) ** 2))
 
-        span = np.log(np.sqrt(2.0) if item.form in TIME_FORMS else 2.0)
         centre = np.log(abs(item.rate))
+        if item.form in TIME_FORMS:
+            low, high = centre - np.log(np.sqrt(2.0)), centre + np.log(np.sqrt(2.0))
+        else:  # |r| max|x| within [1/8, 4]: below, the form is a polynomial in disguise
+            scale = float(np.max(np.abs(self.data[item.variable])))
+            low = max(centre - np.log(2.0), np.log(0.125 / scale))
+            high = min(centre + np.log(2.0), np.log(4.0 / scale))
         found = minimize_scalar(
             loss,
-            bounds=(centre - span, centre + span),
+            bounds=(low, high),
             method="bounded",
             options={"xatol": 1e-5},
         )
@@ -600,8 +607,17 @@ class OfflineProposer:
             or not self._passes(j, terms, free[ties.argmax(share)])
         ):
             # the first tier has nothing left for this equation: the second joins the draw
+            # (a rated form once per variable: two rates of it fit rounding, not the system)
+            present = {(r.form, r.variable) for r in map(self._rated.get, terms) if r}
             free += [
-                t for t in (*self._siblings(terms), *extra) if t not in terms and t not in free
+                t
+                for t in (*self._siblings(terms), *extra)
+                if t not in terms
+                and t not in free
+                and (
+                    t not in self._rated
+                    or (self._rated[t].form, self._rated[t].variable) not in present
+                )
             ]
             share = self.explained(j, terms, free)
         if not free:
@@ -619,9 +635,21 @@ class OfflineProposer:
             choice = int(rng.integers(len(free)))
         term = self._refine(j, terms, free[choice])
         lucky = not greedy and rng.random() < 0.1  # drawn whatever the comparison says
-        if self._passes(j, terms, term) or lucky:
+        if (self._passes(j, terms, term) or lucky) and (term in pool or self._novel(terms, term)):
             terms.append(term)
         return terms
+
+    def _novel(self, terms: Sequence[str], term: str) -> bool:
+        """Whether ``term`` is more than a combination of ``terms``: its column keeps at least
+        ``COLLINEAR`` of its norm once they are projected out (else it would explain the rest
+        only through coefficients that cancel, as tanh(0.1 x) beside x)."""
+        column = self.column(term)
+        x = self.design(terms)
+        if column is None or x.shape[1] == 0:
+            return column is not None
+        q, _ = np.linalg.qr(x)
+        rest = column - q @ (q.T @ column)
+        return bool(np.linalg.norm(rest) >= COLLINEAR * np.linalg.norm(column))
 
     def _remove(self, rng, j, terms) -> list[str]:
         if len(terms) <= 1:

@@ -1,0 +1,136 @@
+"""The offline proposer's second tier: data hide a cube, an exponential and a time forcing; the
+search must write each (terms the first tier, pairwise products of the variables, cannot)."""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxdmd
+from jaxdmd.data import Dataset
+from jaxdmd.pipeline import DiscoveryConfig
+from jaxdmd.prompts import Variable
+from jaxdmd.proposers.offline import OfflineProposer, second_tier
+from jaxdmd.search import SearchConfig
+
+# noise-free data with exact derivatives: the score threshold is the arithmetic's, not noise's
+EXACT = DiscoveryConfig(
+    derivatives="given",
+    algebraic=False,
+    search=SearchConfig(
+        n_islands=4, prompts_per_round=3, samples_per_prompt=4, max_rounds=15, gamma=1e-9
+    ),
+)
+
+
+def _recordings(rhs, starts, inputs=None, t_end=10.0, n=801, time=False) -> list[Dataset]:
+    """Exact trajectories of ``rhs(t, y, u)`` with states ("x", "v") or ("y",)."""
+    out = []
+    for k, y0 in enumerate(starts):
+        t = np.linspace(0.0, t_end, n)
+        u = (lambda s: 0.0) if inputs is None else inputs[k]
+        sol = solve_ivp(lambda s, y, u=u: rhs(s, y, u(s)), (0, t_end), y0, t_eval=t,
+                        rtol=1e-11, atol=1e-12)  # fmt: skip
+        names = ("x", "v") if len(y0) == 2 else ("y",)
+        rates = np.array([rhs(s, y, u(s)) for s, y in zip(t, sol.y.T, strict=True)]).T
+        channels = dict(zip(names, sol.y, strict=True))
+        roles = dict.fromkeys(names, "state")
+        if inputs is not None:
+            channels["u"], roles["u"] = np.array([u(s) for s in t]), "input"
+        ds = Dataset.create(t, channels, roles, derivatives=dict(zip(names, rates, strict=True)),
+                            label=f"rec{k}")  # fmt: skip
+        out.append(ds.with_time() if time else ds)
+    return out
+
+
+def _terms(equation: str) -> dict[str, float]:
+    """``'a * x + -b * v * v'`` -> {term: coefficient} (the readable form's summands)."""
+    out = {}
+    for part in equation.split(" + "):
+        coef, _, term = part.partition(" * ")
+        out[term or "1"] = float(coef)
+    return out
+
+
+def _discover(train) -> dict[str, dict[str, float]]:
+    result = jaxdmd.discover(train, (), EXACT, key=jax.random.key(0))
+    return {k: _terms(v) for k, v in result.de.readable().items()}
+
+
+def test_a_hidden_cube_is_found():
+    """Duffing: d v/dt = -x - 0.3 v - 0.8 x^3."""
+    rhs = lambda t, y, u: [y[1], -y[0] - 0.3 * y[1] - 0.8 * y[0] ** 3]  # noqa: E731
+    found = _discover(_recordings(rhs, [(1.5, 0.0), (-1.0, 1.0), (0.5, -1.5)]))
+    assert found["dx/dt"] == pytest.approx({"v": 1.0}, rel=1e-6)
+    assert found["dv/dt"] == pytest.approx({"x": -1.0, "v": -0.3, "x * x * x": -0.8}, rel=1e-4)
+
+
+def test_a_hidden_exponential_is_found_with_its_rate():
+    """A lag driven through an exponential: d y/dt = -2 y + 0.6 exp(1.5 u), u measured."""
+    rhs = lambda t, y, u: [-2.0 * y[0] + 0.6 * np.exp(1.5 * u)]  # noqa: E731
+    inputs = [
+        lambda s: 0.8 * np.sin(0.7 * s),
+        lambda s: -0.6 + 0.3 * s / 10 * np.cos(2.1 * s),
+        lambda s: np.where(s < 4.0, 0.5, -0.9) + 0.1 * np.sin(3 * s),
+    ]
+    found = _discover(_recordings(rhs, [(0.3,), (1.0,), (0.0,)], inputs))
+    terms = found["dy/dt"]
+    assert set(terms) == {"y", next(t for t in terms if t.startswith("jnp.exp("))}
+    (rate,) = [float(m) for t in terms for m in re.findall(r"jnp\.exp\((\S+) \* u\)", t)]
+    assert rate == pytest.approx(1.5, rel=1e-3)
+    assert terms["y"] == pytest.approx(-2.0, rel=1e-3)
+
+
+def test_a_hidden_time_forcing_is_found_with_its_frequency():
+    """A forced oscillator: d v/dt = -x - 0.2 v + 0.5 cos(2 t); time offered as a channel."""
+    rhs = lambda t, y, u: [y[1], -y[0] - 0.2 * y[1] + 0.5 * np.cos(2.0 * t)]  # noqa: E731
+    found = _discover(_recordings(rhs, [(1.0, 0.0), (-0.5, 0.5), (0.0, -1.0)], time=True))
+    terms = found["dv/dt"]
+    forcing = [t for t in terms if "time" in t]
+    assert len(terms) == 3 and len(forcing) == 1
+    (w,) = [float(m) for m in re.findall(r"jnp\.cos\((\S+) \* time\)", forcing[0])]
+    assert w == pytest.approx(2.0, rel=1e-3)
+    assert {k: v for k, v in terms.items() if k != forcing[0]} == pytest.approx(
+        {"x": -1.0, "v": -0.2}, rel=1e-4
+    )
+
+
+def test_the_second_tier_waits_for_the_first():
+    """While a first-tier term still passes the admission bar, no second-tier term is drawn;
+    once none does, the second tier is offered and its exponential's rate is fitted."""
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-1, 1, 3000)
+    y = rng.uniform(-1, 1, 3000)
+    target = -2.0 * y + 0.6 * np.exp(1.5 * u)
+    proposer = OfflineProposer({"u": u, "y": y}, target[None], groups=np.arange(3000) % 3)
+    variables = (Variable("y", "state", ""), Variable("u", "input", ""))
+    pool, extra = proposer.tiers(variables)
+    assert "u * u * u" in extra and "u * u * u" not in pool
+    draws = [proposer._add(rng, 0, [], pool, extra=extra) for _ in range(20)]
+    assert all(set(d) <= set(pool) for d in draws)  # the first tier explains most at first
+    first = ["1", "y", "u", "u * u"]
+    grown = proposer._add(rng, 0, first, pool, greedy=True, extra=extra)
+    assert len(grown) == 5 and grown[-1] not in pool  # u^3 or an exponential: the second tier
+    rates = {t: float(m) for t in extra for m in re.findall(r"^jnp\.exp\((\S+) \* u\)$", t)}
+    near = min((t for t in rates if rates[t] > 0), key=lambda t: abs(np.log(rates[t] / 1.5)))
+    assert rates[near] != pytest.approx(1.5, rel=0.1)  # the grid's nearest is off ...
+    refined = proposer._refine(0, ["y"], near)  # ... and the rate is fitted
+    assert float(re.findall(r"jnp\.exp\((\S+) \* u\)", refined)[0]) == pytest.approx(1.5)
+
+
+def test_the_second_tier_respects_units():
+    """Functions other than powers take dimensionless variables; a per-unit quantity and an
+    angle get monomials (and the angle's sines as before) only; a time gets forcings only."""
+    data = {k: np.linspace(0.5, 1.5, 50) for k in ("a", "b", "d", "t")}
+    terms, rated = second_tier(
+        (Variable("a", "state", ""), Variable("b", "state", "pu"), Variable("d", "state", "rad"),
+         Variable("t", "input", "s")), data,
+    )  # fmt: skip
+    assert {r.variable for r in rated.values()} == {"a", "t"}
+    assert not any("(b" in t or "(d" in t for t in terms)
+    assert "b * b * b" in terms and "a * a * b" in terms and not any("d * d" in t for t in terms)
+    assert all("t)" in t for t in terms if "t)" in t and "sin" in t) and "t * t * t" not in terms
