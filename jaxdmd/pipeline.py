@@ -190,18 +190,22 @@ class OfflineFactory:
 
     ``subset_size``: per loop, the largest subset of building blocks the offline proposer's
     "subset" edit tries (:class:`jaxdmd.proposers.offline.OfflineConfig`); the AE loop's
-    regressors are estimated states and it gains from larger subsets.
+    regressors are estimated states and it gains from larger subsets. ``blocks``: the user's
+    building blocks, joining the grammar's second tier (``OfflineConfig.blocks``).
     """
 
     name = "offline"
 
-    def __init__(self, subset_size: Mapping[str, int] | None = None) -> None:
+    def __init__(
+        self, subset_size: Mapping[str, int] | None = None, blocks: Sequence[str] = ()
+    ) -> None:
         self.subset_size = {"DE": 3, "AE": 4, **dict(subset_size or {})}
+        self.blocks = tuple(blocks)
 
     def __call__(self, problem: Problem, loop: str = "DE") -> Proposer:
         from jaxdmd.proposers.offline import OfflineConfig, OfflineProposer
 
-        config = OfflineConfig()
+        config = OfflineConfig(blocks=self.blocks)
         if loop in self.subset_size:
             config = dataclasses.replace(config, subset_size=self.subset_size[loop])
         return OfflineProposer.for_problem(problem, config)

@@ -49,8 +49,14 @@ def _recordings(rhs, starts, inputs=None, t_end=10.0, n=801, time=False) -> list
 
 def _terms(equation: str) -> dict[str, float]:
     """``'a * x + -b * v * v'`` -> {term: coefficient} (the readable form's summands)."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(equation):  # split at the top level's " + " only
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and equation.startswith(" + ", i):
+            parts.append(equation[start:i])
+            start = i + 3
     out = {}
-    for part in equation.split(" + "):
+    for part in [*parts, equation[start:]]:
         coef, _, term = part.partition(" * ")
         out[term or "1"] = float(coef)
     return out
@@ -134,3 +140,17 @@ def test_the_second_tier_respects_units():
     assert not any("(b" in t or "(d" in t for t in terms)
     assert "b * b * b" in terms and "a * a * b" in terms and not any("d * d" in t for t in terms)
     assert all("t)" in t for t in terms if "t)" in t and "sin" in t) and "t * t * t" not in terms
+
+
+def test_a_users_building_block_joins_the_second_tier():
+    """A rational response the grammar lacks, d y/dt = -y + 0.8 u / (1 + u^2), is found once
+    the user offers the form as a block (``{v}``: every variable)."""
+    from jaxdmd.pipeline import OfflineFactory
+
+    rhs = lambda t, y, u: [-y[0] + 0.8 * u / (1 + u * u)]  # noqa: E731
+    inputs = [lambda s, a=a: a * np.sin((0.6 + 0.3 * a) * s) for a in (0.5, 1.5, 2.5)]
+    train = _recordings(rhs, [(0.0,), (0.5,), (-0.5,)], inputs)
+    proposer = OfflineFactory(blocks=("{v} / (1 + {v} * {v})", "unknown_name * {v}"))
+    result = jaxdmd.discover(train, (), EXACT, proposer, key=jax.random.key(0))
+    terms = _terms(result.de.readable()["dy/dt"])
+    assert terms == pytest.approx({"y": -1.0, "u / (1 + u * u)": 0.8}, rel=1e-6)

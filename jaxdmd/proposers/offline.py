@@ -296,12 +296,17 @@ def _polynomial_blocks(variables: Sequence[Variable], data: Mapping[str, np.ndar
 
 
 def second_tier(
-    variables: Sequence[Variable], data: Mapping[str, np.ndarray], degree: int = 3
+    variables: Sequence[Variable],
+    data: Mapping[str, np.ndarray],
+    degree: int = 3,
+    blocks: Sequence[str] = (),
 ) -> tuple[list[str], dict[str, Rated]]:
     """Richer candidate terms: monomials of degree 3 to ``degree`` of the variables (and their
     deviations); for dimensionless variables their sines and cosines, times each variable too,
     and the rate forms of ``RATE_FORMS`` on a grid of rates; for a time channel (unit ``s``)
-    sines and cosines on a grid of frequencies. Returns the terms and the rated ones' forms
+    sines and cosines on a grid of frequencies; and the user's ``blocks`` (expressions in the
+    variables' names, a ``{v}`` in one standing for each variable but angles and times; those
+    naming a variable not offered are left out). Returns the terms and the rated ones' forms
     (their rates are refined on the data when drawn)."""
     poly = _polynomial_blocks(variables, data)
     terms = [
@@ -309,6 +314,13 @@ def second_tier(
         for k in range(3, degree + 1)
         for combo in itertools.combinations_with_replacement(poly, k)
     ]
+    names = {v.name for v in variables}
+    for block in blocks:
+        plain = [v.name for v in variables if v.unit not in ("rad", TIME)]
+        for text in [block.format(v=n) for n in plain] if "{v}" in block else [block]:
+            used = {n.id for n in ast.walk(ast.parse(text, mode="eval")) if isinstance(n, ast.Name)}
+            if used - {"jnp", "pi"} <= names:
+                terms.append(text)
     rated: dict[str, Rated] = {}
     for v in variables:
         if v.name not in data or v.unit == "rad":
@@ -391,6 +403,9 @@ class OfflineConfig:
     min_request_gain: float = 1e-3  # NMSE drop a requested variable's best term must bring
     subset_size: int = 3  # the "subset" edit searches every subset of up to this many blocks
     degree: int = 3  # the second tier's largest monomial degree (2: no monomials beyond pairs)
+    # the user's building blocks, joining the second tier: expressions in the variables' names
+    # (jnp functions as in a skeleton), "{v}" standing for each variable, e.g. "{v} / (1 + {v}**2)"
+    blocks: tuple[str, ...] = ()
 
 
 class OfflineProposer:
@@ -479,7 +494,7 @@ class OfflineProposer:
         variables, built once per variable set."""
         key = tuple(variables)
         if key not in self._tiers:
-            extra, rated = second_tier(variables, self.data, self.config.degree)
+            extra, rated = second_tier(variables, self.data, self.config.degree, self.config.blocks)
             self._rated.update(rated)
             self._tiers[key] = (term_pool(variables, self.data), extra)
         return self._tiers[key]
