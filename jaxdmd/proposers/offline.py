@@ -266,7 +266,6 @@ RATE_FORMS = (
     "{v} / (1 + jnp.abs({r} * {v}))",
 )
 TIME_FORMS = ("jnp.sin({r} * {v})", "jnp.cos({r} * {v})")
-COLLINEAR = 1e-2  # a second-tier term whose column lies within this of the others is refused
 _RATE_GRID = tuple(s * 2.0**k for s in (-1, 1) for k in range(-2, 2))  # x 1 / max|v|
 _CYCLES = tuple(2.0 ** (k / 2) for k in range(13))  # x 2 pi / duration: 1 to 64 cycles
 
@@ -650,21 +649,9 @@ class OfflineProposer:
             choice = int(rng.integers(len(free)))
         term = self._refine(j, terms, free[choice])
         lucky = not greedy and rng.random() < 0.1  # drawn whatever the comparison says
-        if (self._passes(j, terms, term) or lucky) and (term in pool or self._novel(terms, term)):
+        if self._passes(j, terms, term) or lucky:
             terms.append(term)
         return terms
-
-    def _novel(self, terms: Sequence[str], term: str) -> bool:
-        """Whether ``term`` is more than a combination of ``terms``: its column keeps at least
-        ``COLLINEAR`` of its norm once they are projected out (else it would explain the rest
-        only through coefficients that cancel, as tanh(0.1 x) beside x)."""
-        column = self.column(term)
-        x = self.design(terms)
-        if column is None or x.shape[1] == 0:
-            return column is not None
-        q, _ = np.linalg.qr(x)
-        rest = column - q @ (q.T @ column)
-        return bool(np.linalg.norm(rest) >= COLLINEAR * np.linalg.norm(column))
 
     def _remove(self, rng, j, terms) -> list[str]:
         if len(terms) <= 1:
