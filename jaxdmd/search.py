@@ -16,7 +16,8 @@ archive, records the best score, and applies the paper's rules:
   read; a requested variable the data holds joins the variable library; one it lacks is
   reported as a measurement to add;
 - termination when every equation's best loss (over the archive: what the recombination of the
-  best lines reaches) stays below gamma for R rounds, or after ``max_rounds``
+  best lines reaches) stays below gamma for R rounds and none of them halved over those R
+  rounds, or after ``max_rounds``
   (plus up to R rounds when a variable joined the library in the last R rounds: the round
   limit does not bind before a late variable had its chance).
 
