@@ -24,7 +24,11 @@ power with a trainable exponent.
 
 :func:`evaluate_numpy` runs a program in NumPy on the host (for the fitter's cheap checks, such as
 the test for parameters entering linearly, which would otherwise dispatch JAX operations one by
-one). Nothing here executes the skeleton's text: lowering only reads the syntax tree.
+one) and for the rollouts that choose models by simulation; its values alone run as one
+straight-line Python function per program, written from the program's register numbers with the
+rules bound by name (a host rollout evaluates small programs at every step, where an interpreter
+loop's dispatch would cost more than the arithmetic). Nothing here executes the skeleton's text:
+lowering only reads the syntax tree.
 """
 
 from __future__ import annotations
@@ -533,9 +537,11 @@ def evaluate_numpy(
         n = np.shape(args[0])[0] if len(args) else 1
     rows = [np.asarray(x, dtype=np.float64) for x in args]
     with np.errstate(all="ignore"):
-        values, _ = run_numpy(program, rows, p, tangents=False)  # type: ignore[arg-type]
-        outs = [np.broadcast_to(v, (p.shape[0], n)) for v in values]
-    return np.stack(outs, axis=1).astype(np.float64, copy=False)
+        values = _value_function(program)(rows, p)
+    out = np.empty((p.shape[0], program.n_outputs, n))
+    for j, v in enumerate(values):
+        out[:, j, :] = v
+    return out
 
 
 def run_numpy(
@@ -612,6 +618,39 @@ def _host_code(program: Program) -> list[tuple[Any, tuple[tuple[int, int, Any], 
         )
         code.append((RULES[name], operands, np.float64(imm), d))
     return code
+
+
+@functools.lru_cache(maxsize=4096)
+def _value_function(program: Program) -> Callable[[list[np.ndarray], np.ndarray], tuple[Any, ...]]:
+    """The values alone, as :func:`run_numpy` computes them (the same rules on the same arrays)
+    but as one straight-line Python function per program, since a host rollout evaluates small
+    programs at every step and an interpreter loop's dispatch costs more than the arithmetic.
+    The function's text is made here from register numbers and names of this module's own: the
+    rules and constants are bound by name in its namespace, nothing of a skeleton's text is in
+    it (so what runs is the program's instructions, as in :func:`run_numpy`)."""
+    namespace: dict[str, Any] = {"np": np, "__builtins__": {}}
+    body = []
+    for j, (rule, operands, imm, dst) in enumerate(_host_code(program)):
+        xs = []
+        for m, (kind, index, value) in enumerate(operands):
+            if kind == 0:
+                xs.append(f"r{int(index)}")
+            elif kind == 1:
+                xs.append(f"rows[{int(index)}][None, :]")
+            elif kind == 2:
+                xs.append(f"p[:, {int(index)}:{int(index) + 1}]")
+            else:
+                namespace[f"c{j}_{m}"] = value
+                xs.append(f"c{j}_{m}")
+        if rule is None:
+            body.append(f"    r{int(dst)} = {xs[0]}")
+        else:
+            namespace[f"f{j}"], namespace[f"i{j}"] = rule[0], imm
+            body.append(f"    r{int(dst)} = f{j}(np, {', '.join(xs)}, i{j})")
+    outputs = "".join(f"r{int(r)}, " for r in program.outputs.tolist())
+    text = "\n".join(["def values(rows, p):", *body, f"    return ({outputs})"])
+    exec(compile(text, "<jaxdmd.interp program>", "exec"), namespace)
+    return namespace["values"]
 
 
 def _chain(partial: Any, tangent: np.ndarray, careful: bool) -> np.ndarray:

@@ -122,6 +122,24 @@ def test_corpus_values_and_derivatives(source: str) -> None:
         _compare(sk, data, p)
 
 
+@pytest.mark.parametrize("source", CORPUS)
+def test_host_values_are_the_host_twins_values_to_the_bit(source: str) -> None:
+    """``evaluate_numpy`` (the values alone, what a host rollout calls at every step) computes
+    exactly what ``run_numpy`` does, for several parameter rows at once."""
+    sk = compile_skeleton(source, variables=VARIABLES, n_outputs=None)  # type: ignore[arg-type]
+    program = interp.program_of(sk)
+    assert program is not None
+    data = _data(2)
+    rows = program.feature_values([data[a] for a in program.arguments])
+    q = np.random.default_rng(len(source)).uniform(0.3, 1.5, (3, max(1, sk.n_params)))
+    got = interp.evaluate_numpy(program, list(rows), q, N)
+    with np.errstate(all="ignore"):
+        values, _ = interp.run_numpy(program, list(rows), q, tangents=False)
+    want = np.stack([np.broadcast_to(v, (3, N)) for v in values], axis=1)
+    assert got.shape == want.shape and got.dtype == np.float64
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
 def _expressions() -> st.SearchStrategy[str]:
     leaves = st.one_of(
         st.sampled_from(["x", "y", "u", "p[0]", "p[1]", "p[2]", "np.pi"]),
