@@ -314,8 +314,8 @@ def second_tier(
         for combo in itertools.combinations_with_replacement(poly, k)
     ]
     names = {v.name for v in variables}
+    plain = [v.name for v in variables if v.unit not in ("rad", TIME)]
     for block in blocks:
-        plain = [v.name for v in variables if v.unit not in ("rad", TIME)]
         for text in [block.format(v=n) for n in plain] if "{v}" in block else [block]:
             used = {n.id for n in ast.walk(ast.parse(text, mode="eval")) if isinstance(n, ast.Name)}
             if used - {"jnp", "pi"} <= names:
