@@ -556,3 +556,40 @@ def test_an_algebraic_variable_built_from_the_others_is_written_in_their_lines()
     # every candidate is a sum of products of the others' lines (and perhaps a constant)
     assert all(line.variables() <= {"a", "b"} for line in lines)
     assert all(line.n_params == k + 1 for k, line in enumerate(lines))
+
+
+def test_a_stand_in_is_swapped_for_the_term_it_stands_in_for_in_one_move():
+    """A stand-in s (an algebraic variable) and the state term x it stands in for are nearly
+    collinear: x beside s simulates worse (the two fitted against each other on the left-out
+    recordings), s dropped alone worse still; only the swap reaches the line with x. The scores
+    here are made up to say exactly that."""
+    from jaxdmd.select import SelectionConfig, _local_search, _terms
+
+    def line(text: str, n: int) -> ln.Line:
+        return ln.Line(ast.parse(text, mode="eval").body, n)
+
+    truth = {"p * e", "p * x"}
+
+    def score(new: list[ln.Line]) -> np.ndarray:
+        def one(terms: set[str]) -> float:
+            if terms == truth:
+                return 0.01
+            if terms == {"p * e", "p * s"}:  # the stand-in's line
+                return 0.03
+            if {"p * s", "p * x"} <= terms:  # both, fitted against each other
+                return 0.05
+            return 0.3
+
+        return np.array([one(_terms(n)) for n in new])
+
+    start = [line("p[0] * e + p[1] * s", 2)]
+    pool = [line("p[0] * x", 1), line("p[0] * y", 1)]
+    config = SelectionConfig()
+    found = {}
+    for swap in (False, True):
+        lines, errors = _local_search(
+            list(start), score(start), pool, score, config, {"e", "x", "y"}, swap=swap
+        )
+        found[swap] = _terms(lines[int(np.argmin(errors))])
+    assert found[False] == {"p * e", "p * s"}  # add and drop alone never leave the stand-in
+    assert found[True] == truth
