@@ -14,7 +14,8 @@ simulation instead:
    measured range). A line that does not vanish at the recorded operating point drifts, an
    unstable one diverges: both score badly without a special rule.
    The candidates are then varied term by term (:func:`_local_search`): the best lines lose
-   one term or gain one of the equation's most frequent archived terms, and the variants are
+   one term or gain one of the equation's most frequent archived terms, or have a term in a
+   variable other than a state swapped for one of them in one move, and the variants are
    simulated in turn, so a stand-in the derivative fit preferred can be dropped and a weak
    term it could not see can be added even where no search wrote the true line.
 2. **The equations together**: the best line of each equation (the simplest within
