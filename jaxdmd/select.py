@@ -14,8 +14,7 @@ simulation instead:
    measured range). A line that does not vanish at the recorded operating point drifts, an
    unstable one diverges: both score badly without a special rule.
    The candidates are then varied term by term (:func:`_local_search`): the best lines lose
-   one term or gain one of the equation's most frequent archived terms, or have a term in a
-   variable other than a state swapped for one of them in one move, and the variants are
+   one term or gain one of the equation's most frequent archived terms, and the variants are
    simulated in turn, so a stand-in the derivative fit preferred can be dropped and a weak
    term it could not see can be added even where no search wrote the true line.
 2. **The equations together**: the best line of each equation (the simplest within
@@ -548,41 +547,19 @@ def _key(line: ln.Line) -> frozenset[str]:
     return frozenset(_terms(line))
 
 
-def _neighbours(
-    line: ln.Line, pool: Sequence[ln.Line], states: set[str] | None = None
-) -> list[ln.Line]:
-    """``line`` with one term dropped, or with one of ``pool``'s terms added; with ``states``,
-    also with a term that reads a variable other than a state swapped for one of ``pool``'s (a
-    stand-in and the term it stands in for are nearly collinear on the training data, so that
-    neither adding the one nor dropping the other alone simulates better: the swap is one move).
-    """
+def _neighbours(line: ln.Line, pool: Sequence[ln.Line]) -> list[ln.Line]:
+    """``line`` with one term dropped, or with one of ``pool``'s terms added."""
     have = _terms(line)
     added = [ln.with_summand(line, t) for t in pool if not (_terms(t) & have)]
-    dropped = ln.without_each_summand(line)
-    swapped = []
-    for rest in dropped if states is not None else ():
-        kept = _terms(rest)
-        gone = have - kept
-        if not any(_names(term) - states for term in gone):
-            continue
-        swapped += [ln.with_summand(rest, t) for t in pool if not (_terms(t) & have)]
-    return [*dropped, *added, *swapped]
-
-
-def _names(term: str) -> set[str]:
-    """The variables a term (its text) reads."""
-    tree = ast.parse(term, mode="eval")
-    return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} - {"p", "jnp", "np", "pi"}
+    return [*ln.without_each_summand(line), *added]
 
 
 def _local_search(
     lines: list[ln.Line], errors: np.ndarray, pool: Sequence[ln.Line],
     score: Callable[[list[ln.Line]], np.ndarray], config: SelectionConfig, states: set[str],
-    swap: bool = False,
 ) -> tuple[list[ln.Line], np.ndarray]:  # fmt: skip
     """Vary the best lines term by term and ``score`` the variants, until the best lines have
-    all been varied (at most ``config.steps`` rounds); with ``swap`` a term in a variable other
-    than a state is also swapped for each of ``pool``'s (:func:`_neighbours`).
+    all been varied (at most ``config.steps`` rounds).
 
     The lines varied in each round are the two simplest within ``tolerance`` of the best
     simulation error and the best itself, each once: a line that enters the beam in the last
@@ -608,7 +585,7 @@ def _local_search(
         varied.update(_key(lines[i]) for i in beam)
         new: list[ln.Line] = []
         for i in beam:
-            for variant in _neighbours(lines[i], pool, states if swap else None):
+            for variant in _neighbours(lines[i], pool):
                 key = _key(variant)
                 if key not in seen:
                     seen.add(key)
@@ -807,7 +784,7 @@ def select_by_simulation(
 
         errors = score(lines)
         lines, errors = _local_search(
-            lines, errors, _term_pool(archived, j, config.terms), score, config, states, swap=True
+            lines, errors, _term_pool(archived, j, config.terms), score, config, states
         )
         if not np.isfinite(np.min(errors)):
             picked.append(derived[j])
