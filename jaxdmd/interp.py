@@ -544,6 +544,23 @@ def evaluate_numpy(
     return out
 
 
+def pointwise_numpy(program: Program, args: Sequence[np.ndarray], p: np.ndarray) -> np.ndarray:
+    """Evaluate on the host at ``B`` points, each with its own parameter row: ``args`` one
+    ``[B]`` array per argument, ``p`` ``[B, P]``. Returns ``[B, K]``: the diagonal of
+    :meth:`Program.values` (point b at row b), computed without the ``[B, K, B]`` outer
+    product (the same rules on the same numbers, so the same values to the bit)."""
+    p = np.atleast_2d(np.asarray(p, dtype=np.float64))
+    b = p.shape[0]
+    rows = [np.asarray(x, dtype=np.float64) for x in program.feature_values(args)]
+    with np.errstate(all="ignore"):
+        # a parameter slice of [1, P, B] is [1, 1, B]: it broadcasts against a row's [1, B]
+        values = _value_function(program)(rows, p.T[None])
+    out = np.empty((b, program.n_outputs))
+    for j, v in enumerate(values):
+        out[:, j] = np.broadcast_to(v, (1, 1, b)).reshape(b)
+    return out
+
+
 def run_numpy(
     program: Program, rows: np.ndarray, q: np.ndarray, tangents: bool = True, careful: bool = True
 ) -> tuple[list[Any], list[Any]]:

@@ -140,6 +140,23 @@ def test_host_values_are_the_host_twins_values_to_the_bit(source: str) -> None:
     assert np.array_equal(got.view(np.int64), want.view(np.int64))
 
 
+@pytest.mark.parametrize("source", CORPUS)
+def test_pointwise_values_are_the_diagonal_to_the_bit(source: str) -> None:
+    """``pointwise_numpy`` (point b with parameter row b, what a batch of host rollouts calls)
+    is the diagonal of ``Program.values`` bit for bit."""
+    sk = compile_skeleton(source, variables=VARIABLES, n_outputs=None)  # type: ignore[arg-type]
+    program = interp.program_of(sk)
+    assert program is not None
+    data = _data(2)
+    args = [data[a] for a in program.arguments]
+    q = np.random.default_rng(len(source)).uniform(0.3, 1.5, (N, max(1, sk.n_params)))
+    got = interp.pointwise_numpy(program, args, q)
+    full = program.values(args, q)  # [N, K, N]
+    want = full[np.arange(N), :, np.arange(N)]
+    assert got.shape == (N, program.n_outputs) and got.dtype == np.float64
+    assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
 def _expressions() -> st.SearchStrategy[str]:
     leaves = st.one_of(
         st.sampled_from(["x", "y", "u", "p[0]", "p[1]", "p[2]", "np.pi"]),
