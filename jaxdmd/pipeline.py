@@ -50,10 +50,12 @@ from jaxdmd.refine import (
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
 from jaxdmd.select import (
     SelectionConfig,
+    front_lines,
     inclusion_frequency,
     pool,
     select_algebraic,
     select_by_simulation,
+    select_states_closed,
     simulation_nrmse,
     weighted_by_recording,
 )
@@ -684,6 +686,22 @@ def discover(
             if ae_selection.get("changed"):
                 observer.message(
                     "AE equations chosen by simulation: " + ", ".join(ae_selection["changed"])  # type: ignore[arg-type]
+                )
+            # the state equations chosen again, closed by the algebraic ones
+            start = time.perf_counter()
+            starts = [front_lines(selection or {}, t) for t in de.contract.targets]
+            de, closed = select_states_closed(
+                de_state, de, weighted, ae, train, config.selection, regressors, starts
+            )
+            closed["seconds"] = time.perf_counter() - start
+            de_seconds += closed["seconds"]
+            report["de"]["closed_selection"] = closed
+            if closed.get("changed"):
+                report["de"]["params"] = list(de.params)
+                report["de"]["equations"] = de.readable()
+                observer.message(
+                    "DE equations chosen again in the closed model: "
+                    + ", ".join(f"d{t}/dt" for t in closed["changed"])  # type: ignore[union-attr]
                 )
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:

@@ -29,6 +29,11 @@ simulation instead:
    currents: :func:`_composed_lines`) by simulating the held-out recording with that variable
    computed and the states it drives integrated; then the lines of each variable's Pareto
    front join the closed model one at a time, where they make it simulate better.
+4. **The state equations again, closed** (:func:`select_states_closed`): each state equation's
+   candidates (its line, the played-in front, the archive's best, and the local search with a
+   swap move) simulated with every state integrated and every algebraic variable computed, the
+   candidate fitted without the held-out recording; a line replaces the current one only on
+   clear evidence (better by more than ``tolerance``, or simpler and no worse).
 
 Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
 programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
@@ -77,7 +82,13 @@ from jaxdmd.search import (
 from jaxdmd.skeleton import Skeleton, SkeletonError
 from jaxdmd.ties import settled
 
-__all__ = ["SelectionConfig", "select_algebraic", "select_by_simulation", "simulate_host"]
+__all__ = [
+    "SelectionConfig",
+    "select_algebraic",
+    "select_by_simulation",
+    "select_states_closed",
+    "simulate_host",
+]
 
 
 # terms of a line built from the other algebraic variables (:func:`_composed_lines`)
@@ -140,10 +151,7 @@ def _played(ds: Dataset, names: Sequence[str]) -> _Played:
 
 def _evaluate(program: interp.Program, args: list[np.ndarray], params: np.ndarray) -> np.ndarray:
     """Outputs ``[B, K]`` of a program at ``B`` points, each with its own parameter row."""
-    out = program.values(args, params)  # [B, K, B] ([B, K, 1] for a program of no variable)
-    b = np.arange(params.shape[0])
-    out = np.broadcast_to(out, (*out.shape[:2], b.size))
-    return out[b, :, b]
+    return interp.pointwise_numpy(program, args, params)
 
 
 def simulate_host(
@@ -547,19 +555,39 @@ def _key(line: ln.Line) -> frozenset[str]:
     return frozenset(_terms(line))
 
 
-def _neighbours(line: ln.Line, pool: Sequence[ln.Line]) -> list[ln.Line]:
-    """``line`` with one term dropped, or with one of ``pool``'s terms added."""
+def _neighbours(
+    line: ln.Line, pool: Sequence[ln.Line], states: set[str] | None = None
+) -> list[ln.Line]:
+    """``line`` with one term dropped, or with one of ``pool``'s terms added; with ``states``,
+    also with a term that reads a variable other than a state swapped for one of ``pool``'s (a
+    stand-in and the term it stands in for are nearly collinear on the training data, so that
+    neither adding the one nor dropping the other alone simulates better: the swap is one
+    move)."""
     have = _terms(line)
     added = [ln.with_summand(line, t) for t in pool if not (_terms(t) & have)]
-    return [*ln.without_each_summand(line), *added]
+    dropped = ln.without_each_summand(line)
+    swapped = []
+    for rest in dropped if states is not None else ():
+        if not any(_names(term) - states for term in have - _terms(rest)):
+            continue
+        swapped += [ln.with_summand(rest, t) for t in pool if not (_terms(t) & have)]
+    return [*dropped, *added, *swapped]
+
+
+def _names(term: str) -> set[str]:
+    """The variables a term (its text, :func:`_terms`) reads."""
+    tree = ast.parse(term, mode="eval")
+    return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} - {"p", "jnp", "np"}
 
 
 def _local_search(
     lines: list[ln.Line], errors: np.ndarray, pool: Sequence[ln.Line],
     score: Callable[[list[ln.Line]], np.ndarray], config: SelectionConfig, states: set[str],
+    swap: bool = False,
 ) -> tuple[list[ln.Line], np.ndarray]:  # fmt: skip
     """Vary the best lines term by term and ``score`` the variants, until the best lines have
-    all been varied (at most ``config.steps`` rounds).
+    all been varied (at most ``config.steps`` rounds); with ``swap`` a term in a variable other
+    than a state is also swapped for each of ``pool``'s (:func:`_neighbours`).
 
     The lines varied in each round are the two simplest within ``tolerance`` of the best
     simulation error and the best itself, each once: a line that enters the beam in the last
@@ -585,7 +613,7 @@ def _local_search(
         varied.update(_key(lines[i]) for i in beam)
         new: list[ln.Line] = []
         for i in beam:
-            for variant in _neighbours(lines[i], pool):
+            for variant in _neighbours(lines[i], pool, states if swap else None):
                 key = _key(variant)
                 if key not in seen:
                     seen.add(key)
@@ -1291,6 +1319,22 @@ def _closed_loro(
     ``lines``), each recording simulated with the algebraic lines fitted on the others; inf if
     a line does not compile or fit, or a rollout diverged. ``fits`` keeps each line's fold
     parameters between calls (a line that stays is not fitted again)."""
+    closure = _closure(ae_state, lines, len(recordings), fits)
+    if closure is None:
+        return float("inf")
+    program, rows = closure
+    return dae_error(
+        de, program, ae_state.contract.targets, rows, recordings, config, played_from, windows
+    )
+
+
+def _closure(
+    ae_state: SearchState, lines: Sequence[ln.Line], n: int,
+    fits: dict[tuple[int, str], np.ndarray | None] | None = None,
+) -> tuple[interp.Program, np.ndarray] | None:  # fmt: skip
+    """The algebraic lines as one program and their parameters fitted with each fold left out,
+    one row per recording (``n``, :func:`_per_recording`); None if a line does not compile or
+    fit. ``fits``: as in :func:`_closed_loro`."""
     fits = {} if fits is None else fits
     lines = [ln.renumbered(line) for line in lines]
     blocks = []
@@ -1300,16 +1344,243 @@ def _closed_loro(
             fits[j, line.text] = params[0, :, : line.n_params] if usable else None
         block = fits[j, line.text]
         if block is None:
-            return float("inf")
+            return None
         blocks.append(block)
     contract = ae_state.contract
     source = ln.assemble(contract.function_name, contract.arguments, lines, contract.outputs)
     try:
         program = interp.lower(source, n_outputs=len(lines))
     except (interp.LoweringError, ValueError):
-        return float("inf")
-    rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
-    return dae_error(de, program, contract.targets, rows, recordings, config, played_from, windows)
+        return None
+    return program, _per_recording(np.concatenate(blocks, axis=1), ae_state, n)
+
+
+# ----------------------------------------------------------------------------------------------
+# the state equations chosen again in the closed model
+
+
+def _union(lines: Sequence[ln.Line]) -> tuple[ln.Line, list[list[int] | None]]:
+    """One line holding every one-parameter term of ``lines`` (``p[u] * term``), and for each
+    line the union's parameter index of each of its parameters (in the order
+    :func:`jaxdmd.lines.renumbered` numbers them), or None where a line is not a sum of
+    distinct one-parameter terms (it is simulated on its own)."""
+    keys: dict[str, int] = {}
+    union: ln.Line | None = None
+    maps: list[list[int] | None] = []
+    for line in lines:
+        line = ln.renumbered(line)
+        parts = ln.summands(line.expr)
+        index = []
+        for part in parts:
+            found = [i for i in map(ln._param_index, ast.walk(part)) if i is not None]
+            if len(found) != 1:
+                break
+            index.append(found[0])
+        texts = [_terms(ln.Line(part, 1)).pop() for part in parts]
+        if (
+            len(index) != len(parts)
+            or len(set(texts)) != len(texts)
+            or sorted(index) != list(range(line.n_params))
+        ):
+            maps.append(None)
+            continue
+        where = [0] * line.n_params
+        for part, text, i in zip(parts, texts, index, strict=True):
+            if text not in keys:
+                term = ln.renumbered(ln.Line(copy.deepcopy(part), 1))
+                union = term if union is None else ln.with_summand(union, term)
+                keys[text] = len(keys)
+            where[i] = keys[text]
+        maps.append(where)
+    return (union if union is not None else ln.Line(ast.Constant(0.0), 0)), maps
+
+
+def _states_closed_errors(
+    de_state: SearchState, j: int, lines: Sequence[ln.Line], fixed: Sequence[ln.Line],
+    targets: Sequence[str], closure: tuple[interp.Program, Sequence[str], np.ndarray],
+    recordings: Sequence[Dataset], config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """Each line's error as state equation ``j`` of the closed model: every state integrated
+    (the other state equations ``fixed``, their parameters written in), every algebraic
+    variable computed by the closure (program, targets, per-recording parameter rows), the
+    line fitted with each recording (or time block) left out and the held-out one simulated;
+    the mean NRMSE of all states.
+
+    The candidates run side by side as rows of one batch: the lines that are sums of
+    one-parameter terms share one program whose equation ``j`` holds all their terms, each
+    row's parameters zero on the terms its line lacks; any other line runs on its own."""
+    errors = np.full(len(lines), np.inf)
+    lines = [ln.renumbered(line) for line in lines]
+    _, params, usable = _usable_fits(de_state, j, lines)
+    if not usable:
+        return errors
+    union, maps = _union([lines[i] for _, i in usable])
+    groups: list[tuple[ln.Line, list[tuple[int, np.ndarray]]]] = []
+    shared: list[tuple[int, np.ndarray]] = []
+    for (c, i), where in zip(usable, maps, strict=True):
+        n = lines[i].n_params
+        rows = _per_recording(params[c, :, :n], de_state, len(recordings))
+        if where is None:
+            groups.append((lines[i], [(i, rows)]))
+            continue
+        wide = np.zeros((rows.shape[0], max(1, union.n_params)))
+        wide[:, where] = rows
+        shared.append((i, wide))
+    if shared:
+        groups.append((union, shared))
+    ae_program, ae_targets, ae_rows = closure
+    source_of_play = list(recordings) if played_from is None else list(played_from)
+    measured = np.stack([[np.asarray(ds[s], dtype=float) for s in targets] for ds in recordings])
+    for line, members in groups:
+        equations = [*fixed[:j], line, *fixed[j:]]
+        used = set().union(*(e.variables() for e in equations))
+        arguments = [
+            *targets, *(a for a in de_state.contract.arguments if a in used and a not in targets)
+        ]  # fmt: skip
+        outputs = [f"y{k}" for k in range(len(equations))]
+        try:
+            program = interp.lower(
+                ln.assemble("closed", arguments, equations, outputs), n_outputs=len(outputs)
+            )
+        except (interp.LoweringError, ValueError):
+            continue
+        k = len(members)
+        held = None if windows is None else list(windows) * k
+        sim = simulate_host(
+            program, targets, np.concatenate([rows for _, rows in members]),
+            source_of_play * k, algebraic=(ae_program, ae_targets, np.tile(ae_rows, (k, 1))),
+            substeps=config.substeps, blowup=config.blowup, windows=held,
+        )  # fmt: skip
+        err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * recordings, states]
+        for (i, _), e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+            errors[i] = float(e)
+    return errors
+
+
+def front_lines(report: dict[str, object], target: str) -> list[ln.Line]:
+    """The lines of ``target``'s Pareto front in a :func:`select_by_simulation` report."""
+    entry = report.get("equations", {}).get(target, {})  # type: ignore[union-attr]
+    out = []
+    for point in entry.get("pareto", ()):
+        expr = ast.parse(point["line"], mode="eval").body
+        out.append(ln.renumbered(ln.Line(expr, 0)))
+    return out
+
+
+def select_states_closed(
+    de_state: SearchState,
+    de: Equations,
+    ae_state: SearchState,
+    ae: Equations,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig | None = None,
+    played_from: Sequence[Dataset] | None = None,
+    starts: Sequence[Sequence[ln.Line]] = (),
+) -> tuple[Equations, dict[str, object]]:
+    """The state equations chosen again in the closed model, once the algebraic equations are.
+
+    :func:`select_by_simulation` chooses each state equation with the measured algebraic
+    variables played in. There a stand-in (an algebraic variable in place of a state term it
+    is nearly collinear with on the training data, ``v_d`` for ``e''_d``) simulates about as
+    well as the true term, since the measured variable is exact; closed, the stand-in is
+    computed from the simulated states and its error feeds back. So each state equation in
+    turn is chosen again with every state integrated and every algebraic variable computed by
+    ``ae`` (its lines fitted with each recording left out): the candidates are its current
+    line, ``starts[j]`` (the played-in Pareto front) and the archive's best lines, then the
+    local search in term space (:func:`_local_search`) with the swap move, since adding the
+    true term or dropping the stand-in alone rarely helps while the other stays. A line
+    replaces the current one if the closed model then simulates the held-out recordings
+    better by more than ``tolerance``, or if it is simpler and simulates no worse; of those,
+    the simplest within ``tolerance`` of the best. The equations are refitted on every
+    recording after each change.
+
+    ``recordings``, ``played_from``: as in :func:`select_algebraic`. Returns the equations and a
+    report: per state equation the closed error of its current line, the candidates, the
+    Pareto front and the choice; the equations changed.
+    """
+    config = config or SelectionConfig()
+    recordings = list(recordings)
+    t0 = np.asarray(recordings[0].t)
+    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+        return de, {"skipped": "the recordings do not share a time grid"}
+    contract = de.contract
+    targets = tuple(contract.targets)
+    states = {v.name for v in contract.states}
+    held = _held_out(de_state, recordings)
+    held_ae = _held_out(ae_state, recordings, played_from)
+    ae_lines, _ = ln.split_lines(ae.source)
+    closure = _closure(held_ae.state, ae_lines, len(held.recordings))
+    if closure is None:
+        return de, {"skipped": "the algebraic equations do not fit with a fold left out"}
+    ae_program, ae_rows = closure
+    ae_targets = tuple(ae.contract.targets)
+    archived = _archive_lines(de_state)
+    report: dict[str, object] = {"held_out": held.label, "equations": {}}
+    changed: list[str] = []
+    current = de
+    for j, target in enumerate(targets):
+        lines, mappings = ln.split_lines(current.source)
+        values = np.asarray(current.params, dtype=float)
+        fixed = [
+            ln.Line(_with_constants(line, values[list(m)]), 0)
+            for k, (line, m) in enumerate(zip(lines, mappings, strict=True))
+            if k != j
+        ]
+
+        def score(new: list[ln.Line], j: int = j, fixed: list[ln.Line] = fixed) -> np.ndarray:
+            return _states_closed_errors(
+                held.state, j, new, fixed, targets,
+                (ae_program, ae_targets, ae_rows), held.recordings, config,
+                held_ae.played_from, held.windows,
+            )  # fmt: skip
+
+        first: dict[str, ln.Line] = {}
+        for line in [
+            lines[j],
+            *(starts[j] if j < len(starts) else ()),
+            *_candidate_lines(archived, j, lines[j], config.candidates),
+        ]:
+            first.setdefault(_key_text(line), line)
+        candidates = list(first.values())
+        errors = score(candidates)
+        before = float(errors[0])
+        pool_j = _term_pool(archived, j, config.terms)
+        candidates, errors = _local_search(
+            candidates, errors, pool_j, score, config, states, swap=True
+        )
+        if not np.isfinite(np.min(errors)):
+            report["equations"][target] = {"kept": "no candidate simulates closed"}  # type: ignore[index]
+            continue
+        entry = _choose(candidates, errors, config, states)[1]
+        entry["dae_nrmse_current"] = before
+        best = float(np.min(errors))
+        eligible = [
+            i for i, e in enumerate(errors)
+            if e <= best * (1 + config.tolerance) and (
+                e * (1 + config.tolerance) < before
+                or (e <= before and _complexity(candidates[i], states)
+                    < _complexity(lines[j], states))
+            )
+        ]  # fmt: skip
+        entry["chosen"] = lines[j].text
+        if eligible:
+            pick = min(eligible, key=lambda i: (_complexity(candidates[i], states),
+                                                settled(errors[i])))  # fmt: skip
+            trial = _assemble(de_state, [*lines[:j], candidates[pick], *lines[j + 1 :]])
+            if trial is not None:
+                current = trial
+                changed.append(target)
+                entry["chosen"] = candidates[pick].text
+                entry["dae_nrmse"] = float(errors[pick])
+        report["equations"][target] = entry  # type: ignore[index]
+    report["changed"] = changed
+    return current, report
+
+
+def _key_text(line: ln.Line) -> str:
+    return " + ".join(sorted(_terms(line)))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -556,3 +556,86 @@ def test_an_algebraic_variable_built_from_the_others_is_written_in_their_lines()
     # every candidate is a sum of products of the others' lines (and perhaps a constant)
     assert all(line.variables() <= {"a", "b"} for line in lines)
     assert all(line.n_params == k + 1 for k, line in enumerate(lines))
+
+
+# ----------------------------------------------------------------------------------------------
+# the state equations chosen again in the closed model
+
+
+def _closed_setup(recordings: list[Dataset], de: search.Equations):
+    """The follower's AE problem for w, with the line w = p0 x + p1 y fitted on it."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.select import _assemble
+
+    problem, ae_contract = ae_problem(recordings, de.contract)
+    ae_state = search.init(problem, ae_contract, jax.random.key(1), search.SearchConfig())
+    line = ln.Line(ast.parse("p[0] * x + p[1] * y", mode="eval").body, 2)
+    ae = _assemble(ae_state, [line])
+    assert ae is not None
+    return ae_state, ae
+
+
+def test_a_stand_in_is_replaced_in_the_closed_model():
+    """The derivative fit writes d y/dt with the clean input u in place of x (the follower's
+    premise); the closed model, every state integrated and w computed, tells them apart, and
+    the closed choice ends on the true terms."""
+    from jaxdmd.select import _terms, select_states_closed
+
+    recordings = _follower()
+    state, by_derivatives = _follower_search(recordings)
+    ae_state, ae = _closed_setup(recordings, by_derivatives)
+    chosen, report = select_states_closed(state, by_derivatives, ae_state, ae, recordings)
+    line = ln.split_lines(chosen.source)[0][1]
+    assert _terms(line) == {"p * x", "p * y"}, line.text
+    assert "y" in report["changed"]
+    entry = report["equations"]["y"]
+    assert entry["dae_nrmse"] <= entry["dae_nrmse_current"]  # as good and simpler: no input
+    # the state equation that was right stays
+    assert "x" not in report["changed"]
+
+
+def test_closed_candidates_batched_in_one_program_score_as_each_alone():
+    """The closed stage simulates a batch of lines as rows of one program holding all their
+    terms (zero where a row's line lacks one): the errors are those of each line simulated
+    alone, and a line that is not a sum of one-parameter terms runs on its own."""
+    from jaxdmd.select import (
+        SelectionConfig,
+        _closure,
+        _held_out,
+        _states_closed_errors,
+        _with_constants,
+    )
+
+    recordings = _follower()
+    state, by_derivatives = _follower_search(recordings)
+    ae_state, ae = _closed_setup(recordings, by_derivatives)
+    held = _held_out(state, recordings)
+    closure = _closure(_held_out(ae_state, recordings).state, ln.split_lines(ae.source)[0], 3)
+    assert closure is not None
+    lines, mappings = ln.split_lines(by_derivatives.source)
+    fixed = [
+        ln.Line(_with_constants(lines[0], np.asarray(by_derivatives.params)[list(mappings[0])]), 0)
+    ]
+
+    def line(text: str) -> ln.Line:
+        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+
+    candidates = [
+        line("p[0] * x + p[1] * y"), line("p[0] * u + p[1] * y"), line("p[0] * w"),
+        line("p[0] * (x - p[1] * y)"), line("p[0] * y + p[1] * x + p[2] * u"),
+    ]  # fmt: skip
+    config = SelectionConfig()
+    targets = ("x", "y")
+    ae_program, ae_rows = closure
+    together = _states_closed_errors(
+        held.state, 1, candidates, fixed, targets, (ae_program, ("w",), ae_rows), recordings, config
+    )
+    alone = np.array([
+        _states_closed_errors(
+            held.state, 1, [c], fixed, targets, (ae_program, ("w",), ae_rows), recordings, config
+        )[0]
+        for c in candidates
+    ])  # fmt: skip
+    assert np.all(np.isfinite(together))
+    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    assert together[0] < together[1]  # the true line simulates better closed than the stand-in
