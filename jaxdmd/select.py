@@ -33,7 +33,8 @@ simulation instead:
    candidates (its line, the played-in front, the archive's best, and the local search with a
    swap move) simulated with every state integrated and every algebraic variable computed, the
    candidate fitted without the held-out recording; a line replaces the current one only on
-   clear evidence (better by more than ``tolerance``, or simpler and no worse).
+   clear evidence (better by more than ``tolerance``, or simpler and no worse), and only if it
+   simulates no worse than ``tolerance`` allows with the algebraic variables played in.
 
 Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
 programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
@@ -1492,9 +1493,12 @@ def select_states_closed(
     local search in term space (:func:`_local_search`) with the swap move, since adding the
     true term or dropping the stand-in alone rarely helps while the other stays. A line
     replaces the current one if the closed model then simulates the held-out recordings
-    better by more than ``tolerance``, or if it is simpler and simulates no worse; of those,
-    the simplest within ``tolerance`` of the best. The equations are refitted on every
-    recording after each change.
+    better by more than ``tolerance``, or if it is simpler and simulates no worse, and if it
+    simulates alone with the measured algebraic variables played in (:func:`_single_errors`)
+    within ``tolerance`` of the current line: a line that only simulates well closed may
+    compensate an algebraic line's error (d omega/dt writing out a power the P_e line gets
+    wrong) instead of being right; of those, the simplest within ``tolerance`` of the best.
+    The equations are refitted on every recording after each change.
 
     ``recordings``, ``played_from``: as in :func:`select_algebraic`. Returns the equations and a
     report: per state equation the closed error of its current line, the candidates, the
@@ -1564,6 +1568,16 @@ def select_states_closed(
                     < _complexity(lines[j], states))
             )
         ]  # fmt: skip
+        if eligible:  # and no worse by more than the tolerance with the algebraic played in
+            played = _single_errors(
+                held.state, j, [lines[j], *(candidates[i] for i in eligible)], held.recordings,
+                config, held.windows,
+            )  # fmt: skip
+            entry["played_in_nrmse_current"] = float(played[0])
+            eligible = [
+                i for i, e in zip(eligible, played[1:], strict=True)
+                if e <= played[0] * (1 + config.tolerance)
+            ]  # fmt: skip
         entry["chosen"] = lines[j].text
         if eligible:
             pick = min(eligible, key=lambda i: (_complexity(candidates[i], states),
