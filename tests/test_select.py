@@ -579,19 +579,22 @@ def test_a_stand_in_is_replaced_in_the_closed_model():
     """The derivative fit writes d y/dt with the clean input u in place of x (the follower's
     premise); the closed model, every state integrated and w computed, tells them apart, and
     the closed choice ends on the true terms."""
-    from jaxdmd.select import _terms, select_states_closed
+    from jaxdmd.select import SelectionConfig, _terms, select_states_closed
 
     recordings = _follower()
     state, by_derivatives = _follower_search(recordings)
     ae_state, ae = _closed_setup(recordings, by_derivatives)
-    chosen, report = select_states_closed(state, by_derivatives, ae_state, ae, recordings)
+    # y's recording is noisy (5 % of its range): the closed errors differ by about 9 %, clear
+    # evidence at a tolerance of 5 %, not at the default 25 %
+    kept, report = select_states_closed(state, by_derivatives, ae_state, ae, recordings)
+    assert report["changed"] == [] and kept is by_derivatives
+    config = SelectionConfig(tolerance=0.05)
+    chosen, report = select_states_closed(state, by_derivatives, ae_state, ae, recordings, config)
     line = ln.split_lines(chosen.source)[0][1]
     assert _terms(line) == {"p * x", "p * y"}, line.text
-    assert "y" in report["changed"]
+    assert report["changed"] == ["y"]  # the state equation that was right stays
     entry = report["equations"]["y"]
-    assert entry["dae_nrmse"] <= entry["dae_nrmse_current"]  # as good and simpler: no input
-    # the state equation that was right stays
-    assert "x" not in report["changed"]
+    assert entry["dae_nrmse"] * 1.05 < entry["dae_nrmse_current"]
 
 
 def test_closed_candidates_batched_in_one_program_score_as_each_alone():
