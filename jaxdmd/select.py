@@ -234,6 +234,12 @@ def simulate_host(
     return out
 
 
+def _shared_grid(recordings: Sequence[Dataset]) -> bool:
+    """Whether the recordings share one time grid (a batch of host rollouts needs it)."""
+    t0 = np.asarray(recordings[0].t)
+    return all(np.array_equal(np.asarray(r.t), t0) for r in recordings[1:])
+
+
 def simulation_error(
     simulated: np.ndarray, recordings: Sequence[Dataset], targets,
     windows: Sequence[tuple[int, int]] | None = None,
@@ -527,7 +533,7 @@ def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> 
     """The ``k`` one-parameter terms found in most of ``lines``; ties in the order the lines
     come, or by the terms' text (``by_text``)."""
     count: dict[str, int] = {}
-    first: dict[str, ln.Line] = {}
+    first: dict[frozenset[str], ln.Line] = {}
     for line in lines:
         for term in ln.simple_summands(line):
             count[term.text] = count.get(term.text, 0) + 1
@@ -796,10 +802,8 @@ def select_by_simulation(
     states = {v.name for v in contract.states}
     recordings = list(recordings)
     sims = recordings
-    if len(recordings) > 1:
-        t0 = np.asarray(recordings[0].t)
-        if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
-            return derivative_choice, {"skipped": "the recordings do not share a time grid"}
+    if not _shared_grid(recordings):
+        return derivative_choice, {"skipped": "the recordings do not share a time grid"}
     derived, _ = ln.split_lines(derivative_choice.source)
     archived = _archive_lines(state)
     picked: list[ln.Line] = []
@@ -893,8 +897,7 @@ def simulation_nrmse(
     simulates the training recordings as well as before)."""
     config = config or SelectionConfig()
     recordings = list(recordings)
-    t0 = np.asarray(recordings[0].t)
-    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+    if not _shared_grid(recordings):
         return float("inf")
     if ae is None:
         return _coupled_error(de, recordings, config)
@@ -1129,8 +1132,7 @@ def select_algebraic(
     """
     config = config or SelectionConfig()
     recordings = list(recordings)
-    t0 = np.asarray(recordings[0].t)
-    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+    if not _shared_grid(recordings):
         return fit_choice, {"skipped": "the recordings do not share a time grid"}
     contract = ae_state.contract
     states = {v.name for v in de.contract.states}
@@ -1507,8 +1509,7 @@ def select_states_closed(
     """
     config = config or SelectionConfig()
     recordings = list(recordings)
-    t0 = np.asarray(recordings[0].t)
-    if any(not np.array_equal(np.asarray(r.t), t0) for r in recordings[1:]):
+    if not _shared_grid(recordings):
         return de, {"skipped": "the recordings do not share a time grid"}
     contract = de.contract
     targets = tuple(contract.targets)
@@ -1541,13 +1542,13 @@ def select_states_closed(
                 held_ae.played_from, held.windows,
             )  # fmt: skip
 
-        first: dict[str, ln.Line] = {}
+        first: dict[frozenset[str], ln.Line] = {}
         for line in [
             lines[j],
             *(starts[j] if j < len(starts) else ()),
             *_candidate_lines(archived, j, lines[j], config.candidates),
         ]:
-            first.setdefault(_key_text(line), line)
+            first.setdefault(_key(line), line)
         candidates = list(first.values())
         errors = score(candidates)
         before = float(errors[0])
@@ -1588,10 +1589,6 @@ def select_states_closed(
         report["equations"][target] = entry  # type: ignore[index]
     report["changed"] = changed
     return current, report
-
-
-def _key_text(line: ln.Line) -> str:
-    return " + ".join(sorted(_terms(line)))
 
 
 # ----------------------------------------------------------------------------------------------
