@@ -35,7 +35,8 @@ class Line:
         )
 
 
-def _param_index(node: ast.AST) -> int | None:
+def param_index(node: ast.AST) -> int | None:
+    """``i`` if ``node`` is the parameter ``p[i]``, else None."""
     if (
         isinstance(node, ast.Subscript)
         and isinstance(node.value, ast.Name)
@@ -45,6 +46,11 @@ def _param_index(node: ast.AST) -> int | None:
     ):
         return node.slice.value
     return None
+
+
+def param_indices(node: ast.AST) -> list[int]:
+    """The index of every parameter ``p[i]`` in ``node``, in :func:`ast.walk` order."""
+    return [i for i in map(param_index, ast.walk(node)) if i is not None]
 
 
 class _Inline(ast.NodeTransformer):
@@ -65,7 +71,7 @@ class _Renumber(ast.NodeTransformer):
         self.offset = offset
 
     def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
-        index = _param_index(node)
+        index = param_index(node)
         if index is None:
             return self.generic_visit(node)
         if index not in self.mapping:
@@ -173,7 +179,7 @@ def without_each_summand(line: Line) -> list[Line]:
     parts = summands(line.expr)
     if len(parts) < 2:
         return []
-    params = [{_param_index(n) for n in ast.walk(s)} - {None} for s in parts]
+    params = [set(param_indices(s)) for s in parts]
     if any(a & b for i, a in enumerate(params) for b in params[i + 1 :]):
         return []
     out = []
@@ -196,8 +202,7 @@ def simple_summands(line: Line) -> list[Line]:
     (``p[3] * i_q`` gives ``p[0] * i_q``): the terms a line can lend to another."""
     out = []
     for s in summands(line.expr):
-        indices = [_param_index(n) for n in ast.walk(s)]
-        if len([i for i in indices if i is not None]) != 1:
+        if len(param_indices(s)) != 1:
             continue
         renumber = _Renumber()
         expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(s)))
@@ -233,7 +238,7 @@ def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) 
 
     class _Sub(ast.NodeTransformer):
         def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
-            index = _param_index(node)
+            index = param_index(node)
             if index is None:
                 return self.generic_visit(node)
             return ast.Constant(float(f"{params[index]:.{digits}g}"))

@@ -118,7 +118,7 @@ _MODULES = ("jnp", "np", "math", "numpy", "jax")
 
 
 def _has_param(node: ast.AST) -> bool:
-    return any(ln._param_index(n) is not None for n in ast.walk(node))
+    return bool(ln.param_indices(node))
 
 
 class _Canon(ast.NodeTransformer):
@@ -165,7 +165,7 @@ def _mul(a: list[_Term], b: list[_Term]) -> list[_Term]:
 def _expand(node: ast.expr) -> list[_Term]:
     if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
         return [(float(node.value), (), ())]
-    k = ln._param_index(node)
+    k = ln.param_index(node)
     if k is not None:
         return [(1.0, ((k, 1),), ())]
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):

@@ -1375,7 +1375,7 @@ def _union(lines: Sequence[ln.Line]) -> tuple[ln.Line, list[list[int] | None]]:
         parts = ln.summands(line.expr)
         index = []
         for part in parts:
-            found = [i for i in map(ln._param_index, ast.walk(part)) if i is not None]
+            found = ln.param_indices(part)
             if len(found) != 1:
                 break
             index.append(found[0])
