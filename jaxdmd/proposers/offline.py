@@ -223,12 +223,7 @@ def building_blocks(
 ) -> tuple[list[str], list[str]]:
     """Level-one blocks (usable in products) and angle terms (used alone) for these variables."""
     angles = [v.name for v in variables if v.unit == "rad"]
-    blocks: list[str] = []
-    for v in variables:
-        if v.unit in ("rad", TIME):  # angles enter through sines and cosines, time as forcing
-            continue
-        per_unit = v.unit in ("pu", "") and v.name in data
-        blocks.append(f"({v.name} - 1)" if per_unit and _near_one(data[v.name]) else v.name)
+    blocks = _polynomial_blocks(variables, data)
     if len(angles) >= 2:
         for a, b in itertools.combinations(angles, 2):
             blocks += [f"jnp.sin({a} - {b})", f"jnp.cos({a} - {b})"]
@@ -288,10 +283,16 @@ def _literal(value: float) -> str:
 
 
 def _polynomial_blocks(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> list[str]:
-    """The level-one blocks that are a variable or its deviation (no function applied)."""
-    names = {v.name for v in variables if v.unit not in ("rad", TIME)}
-    blocks, _ = building_blocks(variables, data)
-    return [b for b in blocks if b in names or b.strip("()").split(" - ")[0] in names]
+    """The level-one blocks that are a variable or its deviation (no function applied): each
+    variable but angles (they enter through sines and cosines) and times (as forcings), a
+    per-unit one that stays near 1 as its deviation ``(x - 1)``."""
+    blocks = []
+    for v in variables:
+        if v.unit in ("rad", TIME):
+            continue
+        per_unit = v.unit in ("pu", "") and v.name in data
+        blocks.append(f"({v.name} - 1)" if per_unit and _near_one(data[v.name]) else v.name)
+    return blocks
 
 
 def second_tier(
