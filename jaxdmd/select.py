@@ -36,12 +36,6 @@ simulation instead:
    clear evidence (better by more than ``tolerance``), and only if it
    simulates no worse than ``tolerance`` allows with the algebraic variables played in.
 
-In every step a line that reads an angle variable (unit rad) alone rather than through a
-difference of two angles is no candidate (:func:`frame_free`): angles are measured from an
-arbitrary reference, and such a term fits the training operating points as an offset and moves
-with the reference elsewhere. Where the derivative choice or the AE loop's fit choice holds such
-a line, the selection's own choice replaces it.
-
 Simulation runs on the host (NumPy, Heun's method on the recordings' sample grid, the lowered
 programs of :mod:`jaxdmd.interp`): nothing is compiled, so a few hundred
 candidate rollouts cost seconds. Play-in is linear between samples and never across an event (a
@@ -74,7 +68,6 @@ import numpy as np
 from jaxdmd import interp, ties
 from jaxdmd import lines as ln
 from jaxdmd.data import Dataset, event_samples
-from jaxdmd.prompts import Contract
 from jaxdmd.proposers.offline import building_blocks, evaluate, subset_errors, wrap
 from jaxdmd.search import (
     Equations,
@@ -392,43 +385,6 @@ def _complexity(line: ln.Line, states: set[str]) -> tuple[int, int, int]:
     )
 
 
-def _angles(contract: Contract) -> frozenset[str]:
-    """The angle variables (unit rad) of a contract when there are two or more (one of them a
-    reference: a machine's rotor angle and its terminal voltage's angle); else none."""
-    names = frozenset(v.name for v in (*contract.states, *contract.library) if v.unit == "rad")
-    return names if len(names) >= 2 else frozenset()
-
-
-def frame_free(line: ln.Line, angles: frozenset[str]) -> bool:
-    """Whether ``line`` reads the ``angles`` only through differences of two of them.
-
-    Angles in a power system are measured from an arbitrary reference (a slack bus, a rotating
-    frame): shifting every angle by the same amount changes no physical quantity, so an
-    equation of a component may depend on its angles only through their differences
-    (``sin(delta - theta)``, ``delta - theta``), never on one angle alone. A term in a bare
-    angle fits the training recordings' operating points as an offset and extrapolates with the
-    reference. Nothing here knows which angles a component has: they are the variables whose
-    unit is rad."""
-    if not angles:
-        return True
-    paired: set[int] = set()
-    for node in ast.walk(line.expr):
-        if (
-            isinstance(node, ast.BinOp)
-            and isinstance(node.op, ast.Sub)
-            and isinstance(node.left, ast.Name)
-            and isinstance(node.right, ast.Name)
-            and node.left.id in angles
-            and node.right.id in angles
-        ):
-            paired.update((id(node.left), id(node.right)))
-    return all(
-        id(node) in paired
-        for node in ast.walk(line.expr)
-        if isinstance(node, ast.Name) and node.id in angles
-    )
-
-
 # ----------------------------------------------------------------------------------------------
 # the selection
 
@@ -569,8 +525,7 @@ def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list
     contract = state.contract
     data = {k: np.asarray(v, dtype=float) for k, v in state.problem.variables.items()}
     blocks, angles = building_blocks([*contract.states, *contract.library], data)
-    alone = [] if _angles(contract) else angles  # angles alone only without a reference
-    names = [wrap(name) for name in dict.fromkeys([*alone, *blocks])]
+    names = [wrap(name) for name in dict.fromkeys([*angles, *blocks])]
     return _best_subset_lines(state, j, names, size, within=True)
 
 
@@ -706,30 +661,13 @@ def _choose(
     }
 
 
-def _frame_free_part(line: ln.Line, angles: frozenset[str]) -> ln.Line | None:
-    """``line`` without its summands that read an angle alone (:func:`frame_free`), its
-    parameters renumbered; None where nothing with a parameter is left."""
-    parts = [part for part in ln.summands(line.expr) if frame_free(ln.Line(part, 0), angles)]
-    if not any(ln.param_indices(part) for part in parts):
-        return None
-    expr = parts[0]
-    for part in parts[1:]:
-        expr = ast.BinOp(left=expr, op=ast.Add(), right=part)
-    return ln.renumbered(ln.Line(ast.fix_missing_locations(copy.deepcopy(expr)), 0))
-
-
 def _usable_fits(
-    state: SearchState, j: int, lines: Sequence[ln.Line], invariant: bool = True
+    state: SearchState, j: int, lines: Sequence[ln.Line]
 ) -> tuple[list[tuple[int, Skeleton]], np.ndarray, list[tuple[int, int]]]:
-    """The lines that compile as equation ``j`` (``(index, skeleton)``) and, with
-    ``invariant``, read the angles only through their differences (:func:`frame_free`), their
-    parameters fitted with each recording left out (``[compiled, folds, P_max]``,
-    :func:`_fold_params`), and the ``(compiled index, line index)`` of those whose every fold
-    fit is finite."""
+    """The lines that compile as equation ``j`` (``(index, skeleton)``), their parameters
+    fitted with each recording left out (``[compiled, folds, P_max]``, :func:`_fold_params`),
+    and the ``(compiled index, line index)`` of those whose every fold fit is finite."""
     compiled = compiled_lines(state.contract, lines)
-    if invariant:
-        angles = _angles(state.contract)
-        compiled = [(i, sk) for i, sk in compiled if frame_free(lines[i], angles)]
     if not compiled:
         return compiled, np.zeros((0, 1, 1)), []
     params = _fold_params(state, j, [sk for _, sk in compiled])
@@ -889,9 +827,6 @@ def select_by_simulation(
         picked.append(line)
     by_derivatives = _coupled_error(derivative_choice, sims, config)
     report["coupled_nrmse_derivative_choice"] = by_derivatives
-    angles = _angles(contract)
-    if not all(frame_free(line, angles) for line in derived):
-        by_derivatives = np.inf  # not a candidate: it reads an angle alone
     if [p.text for p in picked] == [d.text for d in derived]:
         report["coupled_nrmse"] = by_derivatives
         report["changed"] = []
@@ -1104,22 +1039,18 @@ def _by_held_out_fit(
     fit choice and the building blocks' best subsets (:func:`_block_lines`): the simplest
     within ``tolerance`` of the best. Such a variable does not drive a state, so no simulation
     tells its lines apart; but the lines built from it (:func:`_composed_lines`: a power from a
-    voltage and a current) carry its errors into the closed model. A line that reads an angle
-    alone (:func:`frame_free`) is no candidate. Returns the lines (the
+    voltage and a current) carry its errors into the closed model. Returns the lines (the
     others as derived), the equations the composed lines are built from (``fit_choice`` where
     nothing changed, else all lines fitted on every recording) and the variables changed; each
     one's candidates and choice go to ``report["equations"]``."""
     lines = list(derived)
     changed: list[str] = []
-    angles = _angles(ae_state.contract)
     for j, target in enumerate(ae_state.contract.targets):
         if target in used:
             continue
         known = {derived[j].text}
         options = [derived[j], *(c for c in _block_lines(held, j) if c.text not in known)]
         losses = cross_validated_losses(held, j, [ln.renumbered(c) for c in options])
-        free = np.array([frame_free(c, angles) for c in options])
-        losses = np.where(free, losses, np.inf)  # a line reading an angle alone: no candidate
         if not np.isfinite(np.min(losses)):
             continue
         bound = float(np.min(losses)) * (1 + config.tolerance)
@@ -1183,12 +1114,6 @@ def select_algebraic(
        closed model tells them apart.) Where another variable's line has changed by then, the
        lines built from the others' lines (:func:`_composed_lines`) are built again from the
        lines the closed model now has and join the options.
-
-    A line that reads an angle alone, not through a difference of angles (:func:`frame_free`),
-    is no candidate (its simulation error is infinite): where the fit choice of a variable the
-    state equations use is such a line, the line without those terms (or, where nothing is
-    left, the variable's choice of step 1) replaces it before step 2 (``angle_alone`` in the
-    report).
 
     A variable the state equations do not use is not simulated: its line is the simplest within
     ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best
@@ -1254,25 +1179,13 @@ def select_algebraic(
     # the variables' choices join the closed model one at a time: each line of the variable's
     # front (and its choice) replaces the current line in turn, and the closed model simulates
     # the training recordings (fits held out) with it
-    # the closed model starts from the fit choice, but a used variable's line that reads an
-    # angle alone (:func:`frame_free`) is no candidate: the line without those terms takes its
-    # place, or the variable's own choice where nothing is left
-    angles = _angles(contract)
-    start = list(derived)
-    for j, target in enumerate(contract.targets):
-        if target in used and not frame_free(derived[j], angles):
-            start[j] = _frame_free_part(derived[j], angles) or picked[j]
     fits: dict[tuple[int, str], np.ndarray | None] = {}
     by_fit = _closed_loro(
-        held.state, start, de, held.recordings, config, held.played_from, fits, held.windows
+        held.state, derived, de, held.recordings, config, held.played_from, fits, held.windows
     )
     report["dae_nrmse_fit_choice"] = by_fit
-    current_lines, error = list(start), by_fit
+    current_lines, error = list(derived), by_fit
     changed = list(by_fit_changed)
-    report["angle_alone"] = [
-        t for t, a, b in zip(contract.targets, start, derived, strict=True) if a.text != b.text
-    ]
-    changed += [t for t in report["angle_alone"] if t not in changed]
     assembled: dict[tuple[str, ...], Equations | None] = {}
     for j, target in enumerate(contract.targets):
         options = {line.text: line for line in (picked[j], *fronts.get(j, ()))}
@@ -1287,7 +1200,6 @@ def select_algebraic(
             now = assembled[key]
             for line in _composed_lines(held.state, j, now) if now is not None else ():
                 options.setdefault(line.text, line)
-        options = {text: line for text, line in options.items() if frame_free(line, angles)}
         options.pop(current_lines[j].text, None)
         if not options:
             continue
@@ -1317,8 +1229,7 @@ def select_algebraic(
             _, current_lines, error = min(
                 eligible, key=lambda t: (_complexity(t[0], states), settled(t[2]))
             )
-            if target not in changed:
-                changed.append(target)
+            changed.append(target)
     report["dae_nrmse"] = error
     report["changed"] = changed
     chosen = _assemble(ae_state, current_lines) if changed else None
@@ -1432,7 +1343,7 @@ def _closure(
     blocks = []
     for j, line in enumerate(lines):
         if (j, line.text) not in fits:
-            _, params, usable = _usable_fits(ae_state, j, [line], invariant=False)
+            _, params, usable = _usable_fits(ae_state, j, [line])
             fits[j, line.text] = params[0, :, : line.n_params] if usable else None
         block = fits[j, line.text]
         if block is None:

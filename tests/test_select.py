@@ -203,53 +203,6 @@ def test_an_algebraic_stand_in_that_wins_on_fit_loses_in_simulation():
     assert abs(low + 20.0) < 1.0 and abs(high - 20.0) < 1.0
 
 
-def test_angles_are_read_only_through_their_differences():
-    """The tracker with x and theta angles (unit rad): y = 20 (x - theta) depends on the
-    angles' difference only, as a machine's currents depend on delta - theta and not on where
-    the reference angle is. The fit choice writes y with x and theta as separate terms (their
-    sum fits, but a shift of both angles changes it); the algebraic choice must read the angles
-    only through their difference, and simulate as well as the fit choice did closed."""
-    from jaxdmd.problems import ae_problem
-    from jaxdmd.select import frame_free, select_algebraic
-
-    recordings = [
-        ds.with_estimated_derivatives()
-        for ds in tracking(3, 0.01, 20.0, 1001, (0.2, 0.05, 0.3, 0.1),
-                           units={"x": "rad", "theta": "rad"})
-    ]  # fmt: skip
-    _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
-    source = "def f(u, y, p):\n    return p[0] * u + p[1] * y\n"
-    de = search.Equations(contract, source, (1.0, -1.0), (0.0,), 0.0)
-    problem, ae_contract = ae_problem(recordings, contract)
-    angles = frozenset({"x", "theta"})
-    variables = (*ae_contract.states, *ae_contract.library)
-    assert {v.name for v in variables if v.unit == "rad"} == angles
-    config = search.SearchConfig(
-        n_islands=3, prompts_per_round=2, samples_per_prompt=4, max_rounds=6
-    )
-    state = search.init(problem, ae_contract, jax.random.key(0), config)
-    state = run_loop(state, OfflineProposer.for_problem(problem))
-    bare = ln.Line(ast.parse("p[0] * x + p[1] * theta", mode="eval").body, 2)
-    assert not frame_free(bare, angles)
-    from jaxdmd.select import _assemble
-
-    fit_choice = _assemble(state, [bare])
-    assert fit_choice is not None
-    chosen, report = select_algebraic(state, fit_choice, de, recordings)
-    (line,) = ln.split_lines(chosen.source)[0]
-    assert frame_free(line, angles) and {"x", "theta"} <= line.variables(), line.text
-    assert report["changed"] == ["y"] and report["angle_alone"] == ["y"]
-    assert report["dae_nrmse"] < 0.05, report["dae_nrmse"]
-    # shifting both angles by a radian leaves the chosen line's values as they were
-    from jaxdmd.proposers.offline import evaluate
-    from jaxdmd.select import _with_constants
-
-    expr = _with_constants(line, np.asarray(chosen.params))
-    data = {k: np.asarray(recordings[0][k], dtype=float) for k in ("x", "theta", "u")}
-    shifted = {**data, "x": data["x"] + 1.0, "theta": data["theta"] + 1.0}
-    np.testing.assert_allclose(evaluate(expr, shifted), evaluate(expr, data), atol=1e-9)
-
-
 def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     """y = 20 (x - theta) on four recordings; in one, x is measured with a hundred times the
     others' noise (its machine swung far, and the noise is a share of the range). Least squares

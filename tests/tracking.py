@@ -11,13 +11,13 @@ from jaxdmd.data import Dataset
 
 def tracking(
     n: int, noise: float, gain: float, samples: int, rates: tuple[float, float, float, float],
-    seed: int = 0, units: dict[str, str] | None = None,
+    seed: int = 0,
 ) -> list[Dataset]:  # fmt: skip
     """d x/dt = u - y with y = gain (x - theta), ``n`` recordings over 10 s: recording k has
     theta = 0.3 sin((a + b k) t + k) and u = 1 + 0.5 sin((c + d k) t + 2 k) with
     ``rates = (a, b, c, d)``, x starts on its equilibrium and is integrated by fine Euler steps
     (the truth), then recorded with ``noise`` x its range (generator ``seed + k``); u, theta
-    and y are clean; ``units``: the channels' units (default: none given)."""
+    and y are clean."""
     a, b, c, d = rates
     t = np.linspace(0.0, 10.0, samples)
     out = []
@@ -41,5 +41,5 @@ def tracking(
             "y": gain * (x - theta),
         }
         roles = {"x": "state", "u": "input", "theta": "input", "y": "algebraic"}
-        out.append(Dataset.create(t, channels, roles, units))
+        out.append(Dataset.create(t, channels, roles))
     return out
