@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -485,6 +486,18 @@ def loads(text: str, file: str = "<model>") -> Discovery:
 # discovery
 
 
+def dropped_summary(state: SearchState) -> dict[str, object]:
+    """Why the loop's samples were dropped: the count per reason over all rounds
+    (``"total"``, most frequent first) and per round (``"per_round"``, a mapping per round)."""
+    total: Counter[str] = Counter()
+    for row in state.dropped:
+        total.update(dict(row))
+    return {
+        "total": dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0]))),
+        "per_round": [dict(row) for row in state.dropped],
+    }
+
+
 def _loop_summary(
     state: SearchState, eq: Equations, seconds: float, refit: dict[str, object] | None = None
 ) -> dict[str, object]:
@@ -498,6 +511,7 @@ def _loop_summary(
         ),
         "library": [{"name": n, "joined_round": r} for n, r in state.joined],
         "missing_measurements": list(state.missing),
+        "dropped": dropped_summary(state),
         "targets": list(eq.contract.targets),
         "equations": eq.readable(),
         "source": eq.source,
@@ -648,9 +662,17 @@ def discover(
     if len(de_states) > 1:
         report["de"]["searches"] = [
             {"rounds": st.iteration, "stop_reason": st.stop_reason, "equations": eq.readable(),
-             "library": [{"name": n, "joined_round": r} for n, r in st.joined]}
+             "library": [{"name": n, "joined_round": r} for n, r in st.joined],
+             "dropped": dropped_summary(st)}
             for st, eq in zip(de_states, per_search, strict=True)
         ]  # fmt: skip
+        total: Counter[str] = Counter()
+        for st in de_states:
+            total.update(dropped_summary(st)["total"])  # type: ignore[arg-type]
+        # over all searches; each search's rounds are under "searches"
+        report["de"]["dropped"] = {
+            "total": dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0])))
+        }
 
     ae = ae_state = None
     ae_seconds = 0.0

@@ -131,6 +131,9 @@ class SearchState(eqx.Module):
     last_extension: int = eqx.field(static=True, default=0)
     done: bool = eqx.field(static=True, default=False)
     stop_reason: str = eqx.field(static=True, default="")
+    # per round, why samples were dropped: (reason, count) pairs (the checker's rejections,
+    # duplicates, fits that failed)
+    dropped: tuple[tuple[tuple[str, int], ...], ...] = eqx.field(static=True, default=())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -320,6 +323,7 @@ def step(state: SearchState, samples: Sequence[Sample]) -> tuple[SearchState, Ro
         history=(*state.history, best),
         equation_best=(*state.equation_best, _equation_best(state, archive)),
         iteration=round_,
+        dropped=(*state.dropped, tuple(sorted(dropped.items()))),
     )
     state, joined, missing = _maybe_extend(state)
     state = _maybe_stop(state)
@@ -736,6 +740,7 @@ def state_to_dict(state: SearchState) -> dict[str, object]:
         "last_extension": state.last_extension,
         "done": state.done,
         "stop_reason": state.stop_reason,
+        "dropped": [[list(pair) for pair in row] for row in state.dropped],
     }
 
 
@@ -773,6 +778,10 @@ def state_from_dict(
         last_extension=int(data["last_extension"]),
         done=bool(data["done"]),
         stop_reason=str(data["stop_reason"]),
+        dropped=tuple(
+            tuple((str(r), int(n)) for r, n in row)
+            for row in data.get("dropped", [])  # type: ignore[union-attr]
+        ),
     )
 
 

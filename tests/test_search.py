@@ -116,6 +116,16 @@ def test_step_is_pure_and_deterministic():
     assert sum(n for _, n in ra.dropped) >= 2 and ra.n_valid >= 1
     # valid and dropped count the same candidates: the samples and the recombined one
     assert ra.n_valid + sum(n for _, n in ra.dropped) == ra.n_samples + ra.n_recombined
+    # the reasons stay in the state, per round, through a checkpoint, and reach the summary
+    from jaxdmd.pipeline import dropped_summary
+
+    assert a.dropped == (ra.dropped,) and state.dropped == ()
+    saved = json.loads(json.dumps(search.state_to_dict(a)))
+    assert search.state_from_dict(saved, problem, CONFIG).dropped == a.dropped
+    summary = dropped_summary(a)
+    assert summary["per_round"] == [dict(ra.dropped)]
+    assert sum(summary["total"].values()) == sum(n for _, n in ra.dropped)
+    assert any("import" in reason for reason in summary["total"]), summary
 
 
 def test_resume_gives_the_same_result(tmp_path):
