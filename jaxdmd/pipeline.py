@@ -27,7 +27,7 @@ import dataclasses
 import json
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -486,14 +486,20 @@ def loads(text: str, file: str = "<model>") -> Discovery:
 # discovery
 
 
+def _dropped_total(rounds: Iterable[tuple[tuple[str, int], ...]]) -> dict[str, int]:
+    """The count per reason over ``rounds`` (each a round's (reason, count) pairs), most
+    frequent first."""
+    total: Counter[str] = Counter()
+    for row in rounds:
+        total.update(dict(row))
+    return dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def dropped_summary(state: SearchState) -> dict[str, object]:
     """Why the loop's samples were dropped: the count per reason over all rounds
     (``"total"``, most frequent first) and per round (``"per_round"``, a mapping per round)."""
-    total: Counter[str] = Counter()
-    for row in state.dropped:
-        total.update(dict(row))
     return {
-        "total": dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0]))),
+        "total": _dropped_total(state.dropped),
         "per_round": [dict(row) for row in state.dropped],
     }
 
@@ -666,12 +672,9 @@ def discover(
              "dropped": dropped_summary(st)}
             for st, eq in zip(de_states, per_search, strict=True)
         ]  # fmt: skip
-        total: Counter[str] = Counter()
-        for st in de_states:
-            total.update(dropped_summary(st)["total"])  # type: ignore[arg-type]
         # over all searches; each search's rounds are under "searches"
         report["de"]["dropped"] = {
-            "total": dict(sorted(total.items(), key=lambda kv: (-kv[1], kv[0])))
+            "total": _dropped_total(row for st in de_states for row in st.dropped)
         }
 
     ae = ae_state = None

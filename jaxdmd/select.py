@@ -533,7 +533,7 @@ def _frequent_terms(lines: Sequence[ln.Line], k: int, by_text: bool = False) -> 
     """The ``k`` one-parameter terms found in most of ``lines``; ties in the order the lines
     come, or by the terms' text (``by_text``)."""
     count: dict[str, int] = {}
-    first: dict[frozenset[str], ln.Line] = {}
+    first: dict[str, ln.Line] = {}
     for line in lines:
         for term in ln.simple_summands(line):
             count[term.text] = count.get(term.text, 0) + 1
