@@ -16,7 +16,16 @@ state's range added), then, each stage timed in a fresh subprocess per size:
                    settings (``DiscoveryConfig().de_search()``);
   search_round     one round of that search as the default discovery runs it: the offline
                    proposer built on the problem (``OfflineFactory``), ``search.prompts``, its
-                   answers, ``search.step`` (every candidate fitted).
+                   answers, ``search.step`` (every candidate fitted);
+
+and with ``--model DIR`` (a finished run's folder, e.g. the default run's ``runs/demo``: its
+state and algebraic equations) two stages of what follows the searches:
+
+  model_states     ``jaxdmd.refine.model_states``: the states estimated by the Kalman smoother
+                   with the state equations as process model (the AE loop's regressors);
+  joint_refit      ``jaxdmd.refine.refit_joint`` with 3 BFGS steps: the likelihood of all
+                   recordings and its gradient, the most memory-hungry stage of the default
+                   discovery after the searches.
 
 Two ways to make n samples from the 10 s runs (``--mode``):
 
@@ -31,6 +40,7 @@ Python-heavy code a little) and the process's peak RSS after the stage (ru_maxrs
 buffers included, monotone). Writes ``scale.json`` and ``scale.md`` (a table) to ``--out``.
 
     python benchmarks/scale.py --sizes 1000 10000 100000 [--mode long|fine] [--out DIR]
+                               [--model runs/demo]
 """
 
 from __future__ import annotations
@@ -59,6 +69,7 @@ STAGES = (
     "fit_seed",
     "search_round",
 )
+POST_STAGES = ("model_states", "joint_refit")  # with --model
 
 
 def source(cache: Path) -> Path:
@@ -131,11 +142,11 @@ def recordings(cache: Path, n: int, mode: str, seed: int = 0) -> list:
     return out
 
 
-def child(cache: Path, n: int, mode: str) -> dict:
+def child(cache: Path, n: int, mode: str, model_dir: Path | None = None) -> dict:
     """Run the stages on recordings of n samples in this process; one dict of figures."""
     import jax
 
-    import jaxdmd  # noqa: F401
+    import jaxdmd
     from jaxdmd import search
     from jaxdmd.data import matched_filter
     from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory
@@ -175,6 +186,15 @@ def child(cache: Path, n: int, mode: str) -> dict:
         return search.step(after, proposer.propose(requests))
 
     _, report = stage("search_round", one_round)
+    if model_dir is not None:
+        from jaxdmd.refine import model_states, refit_joint
+
+        model = jaxdmd.load(model_dir)
+        estimates = stage("model_states", lambda: model_states(model.de, datasets))
+        stage(
+            "joint_refit",
+            lambda: refit_joint(model.de, model.ae, datasets, estimates, max_steps=3),
+        )
     return {
         "n": n,
         "mode": mode,
@@ -189,15 +209,19 @@ def child(cache: Path, n: int, mode: str) -> dict:
 
 
 def table(results: list[dict]) -> str:
-    head = "| n | mode | band | " + " | ".join(STAGES) + " | peak RSS |"
-    rule = "|" + "---|" * (len(STAGES) + 4)
+    stages = [*STAGES, *(s for s in POST_STAGES if any(s in r.get("stages", {}) for r in results))]
+    head = "| n | mode | band | " + " | ".join(stages) + " | peak RSS |"
+    rule = "|" + "---|" * (len(stages) + 4)
     rows = [head, rule]
     for r in results:
         if "error" in r:
             rows.append(f"| {r['n']} | {r['mode']} | - | " + "failed: " + r["error"][:80] + " |")
             continue
         cells = []
-        for s in STAGES:
+        for s in stages:
+            if s not in r["stages"]:
+                cells.append("-")
+                continue
             f = r["stages"][s]
             cells.append(f"{f['seconds']:.2f} s, {f['tracemalloc_peak_mb']:.0f} MB")
         rss = max(f["maxrss_mb"] for f in r["stages"].values())
@@ -215,12 +239,16 @@ def main() -> None:
     ap.add_argument("--mode", choices=("long", "fine"), default="long")
     ap.add_argument("--out", type=Path, default=Path("/tmp/jaxdmd-scale"))
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per size")
+    ap.add_argument(
+        "--model", type=Path, default=None,
+        help="a finished run's folder: also measure the state estimate and the joint refit",
+    )  # fmt: skip
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     cache = args.out / "source.npz"
     if args.child is not None:
-        print(json.dumps(child(cache, args.child, args.mode)))
+        print(json.dumps(child(cache, args.child, args.mode, args.model)))
         return
     source(cache)
     results = []
@@ -234,6 +262,7 @@ def main() -> None:
             args.mode,
             "--out",
             str(args.out),
+            *(["--model", str(args.model)] if args.model is not None else []),
         ]
         t_start = time.perf_counter()
         try:

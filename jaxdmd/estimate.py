@@ -78,11 +78,11 @@ def _transition(rate):
     return step
 
 
-def _filter_smoother(step, observe, x0, p0, y, u, h, left, q, r):
-    """EKF forward and RTS backward; returns smoothed means [n, S], covariances [n, S, S] and
-    the innovations' log-likelihood. ``observe(x, u_k)`` gives the measured vector y_k [O]
-    (the states themselves, or more); ``q`` [S] process-noise intensity, ``r`` [O] noise."""
-    n_states = x0.shape[0]
+def _filter_steps(step, observe, q, r):
+    """The EKF's measurement update ``update(m, p, y_k, u_k) -> (m, p, log-likelihood)`` and its
+    step between samples ``forward((m, p), inputs) -> ((m, p), (m, p, m_pred, p_pred, A, ll))``
+    (the prediction by ``step``, linearised by ``jax.jacfwd``, then the update)."""
+    n_states = q.shape[0]
     eye = jnp.eye(n_states)
     rmat = jnp.diag(r)
 
@@ -101,8 +101,6 @@ def _filter_smoother(step, observe, x0, p0, y, u, h, left, q, r):
         )
         return m + gain @ v, p_new, ll
 
-    m0, pm0, ll0 = update(x0, p0, y[0], jax.tree.map(lambda v: v[0], u))
-
     def forward(carry, inp):
         m, p = carry
         yk, u0, u1, hk, lk = inp
@@ -112,6 +110,15 @@ def _filter_smoother(step, observe, x0, p0, y, u, h, left, q, r):
         m_new, p_new, ll = update(m_pred, p_pred, yk, u1)
         return (m_new, p_new), (m_new, p_new, m_pred, p_pred, a, ll)
 
+    return update, forward
+
+
+def _filter_smoother(step, observe, x0, p0, y, u, h, left, q, r):
+    """EKF forward and RTS backward; returns smoothed means [n, S], covariances [n, S, S] and
+    the innovations' log-likelihood. ``observe(x, u_k)`` gives the measured vector y_k [O]
+    (the states themselves, or more); ``q`` [S] process-noise intensity, ``r`` [O] noise."""
+    update, forward = _filter_steps(step, observe, q, r)
+    m0, pm0, ll0 = update(x0, p0, y[0], jax.tree.map(lambda v: v[0], u))
     u_prev = jax.tree.map(lambda v: v[:-1], u)
     u_next = jax.tree.map(lambda v: v[1:], u)
     _, (ms, ps, m_preds, p_preds, jac, lls) = jax.lax.scan(
@@ -135,6 +142,27 @@ def _filter_smoother(step, observe, x0, p0, y, u, h, left, q, r):
     m_s = jnp.concatenate([m_s, ms[-1:]])
     p_s = jnp.concatenate([p_s, ps[-1:]])
     return m_s, p_s, ll0 + jnp.sum(lls)
+
+
+def _log_likelihood(step, observe, x0, p0, y, u, h, left, q, r):
+    """The innovations' log-likelihood of the EKF of :func:`_filter_smoother` (the same
+    operations), without the smoother and without keeping the filter's path: differentiated,
+    each step is computed again in the backward pass (``jax.checkpoint``) instead of keeping its
+    intermediate values for every sample, so the gradient's memory is the filter's state per
+    sample (at four recordings of 1e5 samples 2.4 GB less than the smoother's path and 5 GB
+    less than the step's intermediates would take)."""
+    update, forward = _filter_steps(step, observe, q, r)
+    m0, pm0, ll0 = update(x0, p0, y[0], jax.tree.map(lambda v: v[0], u))
+
+    @jax.checkpoint
+    def filtered(carry, inp):
+        carry, out = forward(carry, inp)
+        return carry, out[-1]
+
+    u_prev = jax.tree.map(lambda v: v[:-1], u)
+    u_next = jax.tree.map(lambda v: v[1:], u)
+    _, lls = jax.lax.scan(filtered, (m0, pm0), (y[1:], u_prev, u_next, h, left))
+    return ll0 + jnp.sum(lls)
 
 
 def _identity(x, u):
@@ -222,7 +250,7 @@ class ModelSmoother:
                 return jnp.concatenate([x, relation(x, uk)])
 
             x0 = y[0, :n_states]
-            return _filter_smoother(step, observe, x0, jnp.diag(r[:n_states]), y, u, h, left, q, r)
+            return _log_likelihood(step, observe, x0, jnp.diag(r[:n_states]), y, u, h, left, q, r)
 
         self._run_states = jax.jit(run_states)
         self._run_joint = run_joint
@@ -256,7 +284,7 @@ class ModelSmoother:
             rr = jnp.concatenate(
                 [r, jnp.broadcast_to(ae_variance, (r.shape[0], *ae_variance.shape))], axis=1
             )
-            ll = jax.vmap(lambda *a: self._run_joint(ae_params, self._q, *a)[2])(rr, y, u, h, left)
+            ll = jax.vmap(lambda *a: self._run_joint(ae_params, self._q, *a))(rr, y, u, h, left)
             total = total + jnp.sum(ll)
         return total
 

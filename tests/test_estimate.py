@@ -159,3 +159,36 @@ def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():
     assert "failed" in captured.get()
     assert estimates[0].process == {}  # the generic smoother's estimate
     assert np.all(np.isfinite(np.asarray(estimates[0].dataset["a"])))
+
+
+def test_the_likelihood_without_the_smoother_is_the_filters_with_its_gradient():
+    """The joint refit maximises the filter's likelihood computed alone (the smoother left out,
+    each step computed again for the gradient instead of kept): the same value and gradient
+    as the likelihood that the full filter-smoother returns."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdmd.estimate import _filter_smoother, _log_likelihood, _transition
+
+    recordings, _ = _recordings(n=1)
+    ds = recordings[0]
+    y0 = np.stack([np.asarray(ds["a"]), np.asarray(ds["w"])], axis=1)
+    y = jnp.asarray(np.concatenate([y0, 0.3 * y0[:, :1] ** 2], axis=1))  # a third channel
+    u = {"u": jnp.asarray(np.asarray(ds["u"]))}
+    t = np.asarray(ds.t)
+    h, left = jnp.asarray(np.diff(t)), jnp.zeros(t.size - 1, dtype=bool)
+    q = jnp.asarray([1e-4, 1e-8])
+
+    def run(theta, fn):
+        rate = lambda x, uk: jnp.stack([theta[0] * (x[1] - 1), theta[1] * uk["u"]])  # noqa: E731
+        observe = lambda x, uk: jnp.concatenate([x, theta[2] * x[:1] ** 2])  # noqa: E731
+        r = jnp.asarray([1e-4, 1e-8, theta[3]])
+        out = fn(_transition(rate), observe, y[0, :2], jnp.diag(r[:2]), y, u, h, left, q, r)
+        return out if fn is _log_likelihood else out[2]
+
+    theta = jnp.asarray([45.0, 0.021, 0.29, 1e-4])
+    alone = jax.jit(jax.value_and_grad(lambda th: run(th, _log_likelihood)))(theta)
+    full = jax.jit(jax.value_and_grad(lambda th: run(th, _filter_smoother)))(theta)
+    assert np.isfinite(float(alone[0]))
+    np.testing.assert_allclose(float(alone[0]), float(full[0]), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(alone[1]), np.asarray(full[1]), rtol=1e-9)
