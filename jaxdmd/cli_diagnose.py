@@ -60,6 +60,13 @@ def add_diagnose_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--seed", type=int, default=0, help="seed of the extension search's PRNG key (0)"
     )
+    parser.add_argument(
+        "--frequency",
+        type=float,
+        default=60.0,
+        help="system frequency in Hz (terminal-channel diagnosis: Omega_b, and omega = f / "
+        "frequency from a channel f)",
+    )
     from jaxdmd.cli_data import add_role_arguments
 
     add_role_arguments(
@@ -77,6 +84,9 @@ def run_diagnose(args: argparse.Namespace) -> int:
     train = load_recordings(args.data, args)
     test = load_recordings(args.test_data, args) if args.test_data else None
     first = train[0]
+    family = _terminal_family(args.model, first)
+    if family is not None:
+        return _run_terminal(args, family, train, test, progress)
     model = load_model(args.model, states=first.state_names, channels=first.names)
     window = args.window if args.window > 0 else None
     if window is None:
@@ -109,5 +119,54 @@ def run_diagnose(args: argparse.Namespace) -> int:
     after = result.metrics.get("extended", result.metrics["refit"])["nrmse"]
     progress.console.print(
         f"held-out error (NRMSE) {before:.3g} -> {after:.3g} ({result.gain:.1f}x); report: {path}"
+    )
+    return 0
+
+
+def _terminal_family(spec: str, first: Dataset) -> str | None:
+    """The built-in model to diagnose from terminal channels, when the data call for it (they
+    have V, theta, P, Q and lack the model's rotor angle or internal voltages)."""
+    from pathlib import Path
+
+    from jaxdmd.grid.machines import canonical_model_name
+    from jaxdmd.terminal import FAMILIES, is_terminal
+
+    if Path(spec).suffix == ".py" or Path(spec).exists():
+        return None
+    try:
+        name = canonical_model_name(spec)
+    except ValueError:
+        return None
+    return name if is_terminal(first, FAMILIES[name].states) else None
+
+
+def _run_terminal(
+    args: argparse.Namespace,
+    family: str,
+    train: list[Dataset],
+    test: list[Dataset] | None,
+    progress: Progress,
+) -> int:
+    from jaxdmd.terminal import TerminalConfig, diagnose_terminal, write_terminal_report
+
+    progress.console.print(
+        f"Diagnosing [bold]{family}[/bold] from terminal channels on {len(train)} "
+        "recording(s): V and theta played in, P, Q (and omega) compared; rotor angle and "
+        "internal voltages estimated..."
+    )
+    config = TerminalConfig(threshold=args.threshold, frequency=args.frequency)
+    result = diagnose_terminal(train, family, test=test, config=config)
+    path = write_terminal_report(args.out, result)
+    for a in result.assumptions:
+        progress.console.print(f"\n[bold]Not measured[/bold]: {a}")
+    progress.console.print(
+        f"\n[bold]Cause ({result.cause['kind']})[/bold]: {result.cause['summary']}"
+    )
+    held = result.errors["held_out"]
+    after = held.get("extended", held["refit"])
+    progress.console.print(
+        "held-out NRMSE "
+        + ", ".join(f"{o} {held['refit'][o]:.3g} -> {after[o]:.3g}" for o in result.outputs)
+        + f"; report: {path}"
     )
     return 0
