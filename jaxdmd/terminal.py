@@ -50,6 +50,7 @@ __all__ = [
     "TERMINAL_CHANNELS",
     "TerminalConfig",
     "TerminalDiagnosis",
+    "derived",
     "diagnose_terminal",
     "is_terminal",
     "write_terminal_report",
@@ -132,10 +133,17 @@ def _dynamic(family: Family) -> tuple[str, ...]:
     return tuple(s for s in family.states[1:] if not (family.name == "classical" and s == "e_qp"))
 
 
-def candidates(family: Family) -> tuple[tuple[str, str], ...]:
+def candidates(family: Family, measured: Sequence[str] = ()) -> tuple[tuple[str, str], ...]:
     """Every (equation, term) pair a diagnosis may add, in a fixed order: the same pool for
     every state equation (a squared state only in its own), the stator pool for both stator
-    equations."""
+    equations. A constant that an unmeasured input absorbs is no candidate: the equilibrium
+    solves for P_m (a constant in d omega/dt) and v_f (a constant in d e'_q/dt, or in the
+    q-axis stator equation, which shifts e'_q), so the data cannot see it."""
+    absorbed = set()
+    if "P_m" not in measured:
+        absorbed.add(("omega", "1"))
+    if "v_f" not in measured or family.name == "classical":  # classical: E' is solved for
+        absorbed |= {("e_qp", "1"), ("stator_q", "1")}
     out = [
         (eq, term)
         for eq in _dynamic(family)
@@ -143,7 +151,7 @@ def candidates(family: Family) -> tuple[tuple[str, str], ...]:
         if not term.endswith("**2") or term == f"{eq}**2"
     ]
     out += [(eq, term) for eq in ("stator_q", "stator_d") for term in _STATOR_POOL]
-    return tuple(out)
+    return tuple(c for c in out if c not in absorbed)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -154,10 +162,10 @@ def candidates(family: Family) -> tuple[tuple[str, str], ...]:
 class _Machine:
     """The family's equations with extension coefficients ``c`` (one per candidate)."""
 
-    def __init__(self, family: Family, omega_b: float) -> None:
+    def __init__(self, family: Family, omega_b: float, measured: Sequence[str] = ()) -> None:
         self.family = family
         self.omega_b = omega_b
-        self.cands = candidates(family)
+        self.cands = candidates(family, measured)
         self.index = {name: i for i, name in enumerate(family.params)}
         self.equations = _dynamic(family)
         self.pool = _de_pool(family)
@@ -518,6 +526,7 @@ class TerminalDiagnosis:
             "cause": self.cause,
             "candidates": [c.to_dict() for c in self.candidates],
             "parameters": self.parameters,
+            "derived": {k: derived(self.family, p) for k, p in self.parameters.items()},
             "standard_errors": self.standard_errors,
             "errors": self.errors,
             "gain": {o: self.gain(o) for o in self.outputs},
@@ -715,7 +724,7 @@ def diagnose_terminal(
         for u in fam.inputs
         if u not in measured
     )
-    machine = _Machine(fam, 2.0 * np.pi * config.frequency)
+    machine = _Machine(fam, 2.0 * np.pi * config.frequency, measured)
     recs = [_recording(ds, outputs, measured) for ds in train]
     sim = _Simulator(machine, recs, outputs, measured, config.substeps)
     held_sim = _Simulator(
@@ -855,6 +864,19 @@ def diagnose_terminal(
     )
 
 
+def derived(family: str, p: dict[str, float]) -> dict[str, float]:
+    """The familiar quantities from a family's fitted parameters: H = M / 2 [s] and the
+    synchronous reactances (PSAT 5.1: x_q = c_e'd + c_e''d + x'_d, the equilibrium's relation)."""
+    out = {"H": p["M"] / 2.0}
+    if "x_d_minus_x_dp" in p:
+        out["x_d"] = p["x_d_minus_x_dp"] + p["x_dp"]
+    if family == "psat-5.1":
+        out["x_q"] = p["c_edp"] + p["c_edpp"] + p["x_dp"]
+    elif family == "two-axis":
+        out["x_q"] = p["x_q_minus_x_qp"] + p["x_qp"]
+    return out
+
+
 def _mean_error(errors: dict[str, float]) -> float:
     return float(np.mean(list(errors.values())))
 
@@ -911,6 +933,9 @@ def write_terminal_report(out: str | Path, result: TerminalDiagnosis) -> Path:
                 text += " (not identified)"
             cells.append(text)
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    for model, p in result.parameters.items():
+        d = derived(result.family, p)
+        lines.append(f"\n{model}: " + ", ".join(f"{k} = {v:.5g}" for k, v in d.items()))
     lines += [
         "",
         "## Candidates (score test, then the best refitted)",

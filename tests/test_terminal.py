@@ -84,12 +84,15 @@ def test_terminal_data_are_recognised_and_bad_data_are_clear_errors():
         diagnose_terminal([ds], "psat-5.1")
     # the candidate pool is generic: every state equation gets the same terms (its own state
     # squared aside), both stator equations the same three
-    cands = candidates(FAMILIES["psat-5.1"])
+    cands = candidates(FAMILIES["psat-5.1"], measured=("P_m", "v_f"))
     per = {}
     for eq, term in cands:
         per.setdefault(eq, set()).add(term.replace(f"{eq}**2", "own**2"))
     assert per["stator_q"] == per["stator_d"] == {"1", "i_d", "i_q"}
     assert per["e_qp"] == per["e_dp"] == per["e_dpp"] == per["omega"] | {"own**2"}
+    # unmeasured P_m and v_f are solved for at the equilibrium: the constants they absorb go
+    absorbed = set(cands) - set(candidates(FAMILIES["psat-5.1"]))
+    assert absorbed == {("omega", "1"), ("e_qp", "1"), ("stator_q", "1")}
 
 
 @pytest.fixture(scope="module")
