@@ -17,7 +17,8 @@ module does that and goes on to say which equation is wrong:
    range) by Levenberg-Marquardt through the simulation (Heun's method on the sample grid, as
    :mod:`jaxdmd.simfit`).
 3. **Which equation is wrong.** Every candidate extension (a term with a free coefficient in a
-   state equation, or in one of the two stator equations: the algebraic side) is ranked by the
+   state equation, or in one of the two stator equations: the algebraic side; or, for an
+   unmeasured input, a governor or exciter block around its pre-fault value) is ranked by the
    score (Lagrange-multiplier) test at the refitted model: the drop in the sum of squares that
    freeing its coefficient gives to first order, with the model's own parameters refitted
    alongside (one Jacobian for all candidates). The best few are refitted in full; the one that
@@ -69,7 +70,20 @@ _LABELS = {
     "e_dpp": "d e''_d/dt (q-axis sub-transient)",
     "stator_q": "stator q-axis equation (0 = v_q + r_a i_q - e_q + X_d i_d)",
     "stator_d": "stator d-axis equation (0 = v_d + r_a i_d - e_d - X_q i_q)",
+    "P_m": "mechanical power P_m (not measured)",
+    "v_f": "field voltage v_f (not measured)",
 }
+
+# An unmeasured input may vary: a first-order block around its pre-fault value, its gain the
+# candidate's coefficient (0: constant), its time constant fitted with it.
+#   governor  T_g dP_m/dt = P_m0 - P_m - G (omega - omega_0)
+#   exciter   T_A dv_f/dt = v_f0 - v_f - K_A (V - V_0)
+_BLOCKS = {
+    "P_m": ("omega - omega_0", "a governor", "G", "T_g", 0.5),
+    "v_f": ("V - V_0", "an exciter", "K_A", "T_A", 0.2),
+}
+# typical gains, a start for the fit: 5 % droop on the rating (G = rating / 0.05), K_A = 20
+_TYPICAL_GAIN = {"P_m": lambda rating: rating / 0.05, "v_f": lambda rating: 20.0}
 
 
 @dataclass(frozen=True)
@@ -151,6 +165,7 @@ def candidates(family: Family, measured: Sequence[str] = ()) -> tuple[tuple[str,
         if not term.endswith("**2") or term == f"{eq}**2"
     ]
     out += [(eq, term) for eq in ("stator_q", "stator_d") for term in _STATOR_POOL]
+    out += [(u, _BLOCKS[u][0]) for u in family.inputs if u not in measured]
     return tuple(c for c in out if c not in absorbed)
 
 
@@ -169,7 +184,11 @@ class _Machine:
         self.index = {name: i for i, name in enumerate(family.params)}
         self.equations = _dynamic(family)
         self.pool = _de_pool(family)
-        de = [(k, eq, t) for k, (eq, t) in enumerate(self.cands) if not eq.startswith("stator")]
+        self.blocks = tuple(u for u in family.inputs if (u, _BLOCKS[u][0]) in self.cands)
+        # the coefficient vector: one per candidate, then each block's inverse time constant
+        self.n_c = len(self.cands) + len(self.blocks)
+        self.tau = {u: len(self.cands) + j for j, u in enumerate(self.blocks)}
+        de = [(k, eq, t) for k, (eq, t) in enumerate(self.cands) if eq in self.equations]
         st = [(k, eq, t) for k, (eq, t) in enumerate(self.cands) if eq.startswith("stator")]
         self.de_k = np.asarray([k for k, _, _ in de], dtype=int)
         self.de_rc = (
@@ -184,6 +203,30 @@ class _Machine:
 
     def _p(self, theta: jax.Array, name: str) -> jax.Array:
         return theta[self.index[name]]
+
+    def c0(self) -> np.ndarray:
+        """The coefficients of the model as given: no term added, blocks at typical speed."""
+        c = np.zeros(self.n_c)
+        for u, k in self.tau.items():
+            c[k] = 1.0 / _BLOCKS[u][4]
+        return c
+
+    def block(self, k: int | None) -> int | None:
+        """The inverse time constant's index that comes with candidate ``k`` (a block)."""
+        if k is None or self.cands[k][0] not in self.tau:
+            return None
+        return self.tau[self.cands[k][0]]
+
+    def block_rates(
+        self, c: jax.Array, x: dict[str, jax.Array], V: jax.Array, ref: dict[str, jax.Array]
+    ) -> dict[str, jax.Array]:
+        """d/dt of the unmeasured inputs (zero with a zero gain: held at the pre-fault value)."""
+        out = {}
+        for u in self.blocks:
+            gain, inv_t = c[self.cands.index((u, _BLOCKS[u][0]))], c[self.tau[u]]
+            drive = x["omega"] - ref["omega"] if u == "P_m" else V - ref["V"]
+            out[u] = inv_t * (ref[u] - x[u] - gain * drive)
+        return out
 
     def electrical(
         self, theta: jax.Array, c: jax.Array, x: dict[str, jax.Array], V: jax.Array, th: jax.Array
@@ -385,14 +428,17 @@ class _Simulator:
     def _rollout(self, theta: jax.Array, c: jax.Array, rec: dict[str, Any]) -> jax.Array:
         """The outputs ``[O, n]`` of one recording."""
         x0, u0 = self._equilibrium(theta, c, rec["start"])
-        states = self.m.family.states
-        constant = {n: u0[n] for n in self.unknown_inputs}
+        # the unmeasured inputs are states of their blocks, at rest with a zero gain
+        states = (*self.m.family.states, *self.m.blocks)
+        x0 = {**x0, **{u: u0[u] for u in self.m.blocks}}
+        ref = {**{u: u0[u] for u in self.m.blocks}, "omega": x0["omega"], "V": rec["start"]["V"]}
         bound = 1e3
 
         def field(x: jax.Array, w: dict[str, jax.Array]) -> jax.Array:
             xs = {n: x[i] for i, n in enumerate(states)}
-            u = {**constant, **{n: w[n] for n in self.measured}}
+            u = {**{n: xs[n] for n in self.m.blocks}, **{n: w[n] for n in self.measured}}
             r = self.m.rates(theta, c, xs, w["V"], w["th"], u)
+            r.update(self.m.block_rates(c, xs, w["V"], ref))
             return jnp.stack([r[n] for n in states])
 
         def step(x: jax.Array, k: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
@@ -568,11 +614,15 @@ def _with_speed(ds: Dataset, frequency: float) -> Dataset:
     return ds.with_channels({"omega": np.asarray(ds["f"]) / frequency}, {"omega": "algebraic"})
 
 
-def _guess(family: Family, recs: Sequence[dict[str, Any]]) -> np.ndarray:
-    """Typical values on the machine's own rating, its rating guessed from the pre-fault
-    apparent power (loaded to 80 %)."""
+def _rating(recs: Sequence[dict[str, Any]]) -> float:
+    """The machine's rating guessed from the pre-fault apparent power (loaded to 80 %)."""
     s = np.mean([np.hypot(r["start"]["P"], r["start"]["Q"]) for r in recs]) / 0.8
-    s = max(float(s), 1e-3)
+    return max(float(s), 1e-3)
+
+
+def _guess(family: Family, recs: Sequence[dict[str, Any]]) -> np.ndarray:
+    """Typical values on the machine's own rating (`_rating`)."""
+    s = _rating(recs)
     out = []
     for name in family.params:
         v = _TYPICAL[name]
@@ -594,8 +644,9 @@ def _split_held_out(
 
 class _Fit:
     """Levenberg-Marquardt on the output error (Marquardt's scaling), the family's parameters
-    free and at most one candidate's coefficient with them. One compiled Jacobian (forward
-    mode through the simulation) serves every fit and the score test."""
+    free and at most one candidate's coefficient with them (a block's gain with its time
+    constant). One compiled Jacobian (forward mode through the simulation) serves every fit
+    and the score test."""
 
     def __init__(self, sim: _Simulator, max_steps: int) -> None:
         self.sim, self.max_steps = sim, max_steps
@@ -605,14 +656,14 @@ class _Fit:
         def residual(full: jax.Array, weights: jax.Array) -> jax.Array:
             return sim.residual(full[:n_b], full[n_b:], weights)
 
-        def jac(full: jax.Array, k: jax.Array, active: jax.Array, weights: jax.Array):
-            cols = jnp.concatenate([jnp.arange(n_b), (n_b + k)[None]])
-            on = jnp.concatenate([jnp.ones(n_b), active[None]])
+        def jac(full: jax.Array, ks: jax.Array, active: jax.Array, weights: jax.Array):
+            cols = jnp.concatenate([jnp.arange(n_b), n_b + ks])
+            on = jnp.concatenate([jnp.ones(n_b), active])
 
             def res(phi: jax.Array) -> jax.Array:
                 return residual(full.at[cols].add(phi * on), weights)
 
-            m = n_b + 1
+            m = n_b + 2
             return res(jnp.zeros(m)), jax.jacfwd(res)(jnp.zeros(m))
 
         self.residual = jax.jit(residual)
@@ -622,18 +673,25 @@ class _Fit:
         r = np.asarray(self.residual(jnp.asarray(full), weights))
         return float(r @ r) if np.all(np.isfinite(r)) else float("inf")
 
+    def extra(self, k: int | None) -> list[int]:
+        """The coefficients freed with candidate ``k``: its own, and a block's time constant."""
+        if k is None:
+            return []
+        tau = self.sim.m.block(k)
+        return [k] if tau is None else [k, tau]
+
     def jacobian(self, full: np.ndarray, k: int | None, weights: jax.Array):
-        r, J = self.jac(
-            jnp.asarray(full), jnp.asarray(0 if k is None else k),
-            jnp.asarray(0.0 if k is None else 1.0), weights,
-        )  # fmt: skip
-        J = np.asarray(J)
-        return np.asarray(r), (J if k is not None else J[:, : self.n_b])
+        """Residual and Jacobian (the family's parameters, then the `extra` coefficients)."""
+        extra = self.extra(k)
+        ks = np.asarray([*extra, 0, 0][:2])
+        active = np.asarray([1.0] * len(extra) + [0.0] * (2 - len(extra)))
+        r, J = self.jac(jnp.asarray(full), jnp.asarray(ks), jnp.asarray(active), weights)
+        return np.asarray(r), np.asarray(J)[:, : self.n_b + len(extra)]
 
     def __call__(self, full: np.ndarray, k: int | None, weights: jax.Array) -> np.ndarray:
         """The fitted parameter vector (family's parameters, then the coefficients)."""
         full = np.asarray(full, dtype=float).copy()
-        cols = [*range(self.n_b), *(() if k is None else (self.n_b + k,))]
+        cols = [*range(self.n_b), *(self.n_b + e for e in self.extra(k))]
         sse, lam = self.sse(full, weights), 1e-3
         if not np.isfinite(sse):
             return full
@@ -675,7 +733,7 @@ class _Fit:
                 q, _ = np.linalg.qr(Jb / np.maximum(np.linalg.norm(Jb, axis=0), 1e-300))
                 pr = r - q @ (q.T @ r)
                 rr = max(float(r @ r), 1e-300)
-            g = J[:, -1]
+            g = J[:, self.n_b]  # the candidate's own coefficient (a block's gain)
             pg = g - q @ (q.T @ g)
             den = float(pg @ pg)
             if den > 1e-10 * max(float(g @ g), 1e-300):
@@ -732,6 +790,7 @@ def diagnose_terminal(
         config.substeps,
     )  # fmt: skip
     n_b, n_c = len(fam.params), len(machine.cands)
+    c0 = machine.c0()
     weights = jnp.ones(len(recs))
     fit = _Fit(sim, config.max_steps)
 
@@ -741,10 +800,10 @@ def diagnose_terminal(
     for factor in (1.0, 0.5, 2.0):
         start = np.asarray([v * factor if n in _IMPEDANCE else v for n, v in
                             zip(fam.params, typical, strict=True)])  # fmt: skip
-        full = fit(np.concatenate([start, np.zeros(n_c)]), None, weights)
+        full = fit(np.concatenate([start, c0]), None, weights)
         sse = fit.sse(full, weights)
         if np.isfinite(sse) and (best is None or sse < best[1]):
-            best = (full, sse)
+            best, origin = (full, sse), start
     if best is None:
         raise ValueError(
             "the model does not simulate the training recordings from typical parameters"
@@ -757,8 +816,17 @@ def diagnose_terminal(
     ranked = []
     fitted: dict[int, np.ndarray] = {}
     for k in order[: config.refits]:
-        fitted[k] = fit(refit, k, weights)
-        sse = fit.sse(fitted[k], weights)
+        # from the refitted model, and from the start it came from (a missing effect may have
+        # pulled the refit far off: a constant field voltage under a voltage regulator)
+        starts = [refit, np.concatenate([origin, c0])]
+        if machine.cands[k][0] in _BLOCKS:  # and with the block at a typical gain
+            typical_gain = starts[1].copy()
+            typical_gain[n_b + k] = _TYPICAL_GAIN[machine.cands[k][0]](_rating(recs))
+            starts.append(typical_gain)
+        tries = [fit(s, k, weights) for s in starts]
+        sses = [fit.sse(f, weights) for f in tries]
+        fitted[k] = tries[int(np.argmin(sses))]
+        sse = min(sses)
         share = float(1.0 - sse / sse_refit) if np.isfinite(sse) else 0.0
         coefficient = float(fitted[k][n_b + k])
         ranked.append(TerminalCandidate(*machine.cands[k], float(scores[k]), share, coefficient))
@@ -797,6 +865,43 @@ def diagnose_terminal(
         models.pop("extended")
         for where in errors.values():
             where.pop("extended")
+    elif pick is not None and pick.equation in _BLOCKS:
+        u = pick.equation
+        drive, what, gain, tname, _ = _BLOCKS[u]
+        k = machine.cands.index(pick.key)
+        full = fitted[k]
+        inv_t = full[n_b + machine.tau[u]]
+        se = fit.standard_errors(full, k, weights, [*fam.params, gain, "inv"])
+        loose = [  # standard errors above a tenth of the value
+            n for n in (*fam.params, gain) if se[n] > 0.1 * abs(_value(full, n, fam, n_b, k))
+        ]
+        cause = {
+            "kind": "missing variable",
+            "equation": u,
+            "equation_kind": "input",
+            "term": pick.term,
+            "explained": pick.explained,
+            "equivalent": [{"equation": c.equation, "term": c.term} for c in equivalent],
+            "summary": (
+                f"{u} ({_LABELS[u]}) is not constant: {what} ({tname} d{u}/dt = {u}_0 - {u} "
+                f"- {gain} ({drive})) with {gain} = {pick.coefficient:.4g} "
+                f"± {se[gain]:.2g}, {tname} = {1.0 / inv_t:.3g} s removes "
+                f"{pick.explained:.0%} of the refitted model's output error on the training "
+                "recordings"
+                + (
+                    f"; poorly determined by these data: {', '.join(loose)} (standard errors "
+                    f"above 10 % of the values): measuring {u} would separate them"
+                    if loose
+                    else ""
+                )
+                + "; held-out NRMSE "
+                + ", ".join(
+                    f"{o} {errors['held_out']['refit'][o]:.3g} -> "
+                    f"{errors['held_out']['extended'][o]:.3g}"
+                    for o in outputs
+                )
+            ),
+        }
     elif pick is not None:
         cause = {
             "kind": "missing term",
@@ -837,10 +942,19 @@ def diagnose_terminal(
         params[name] = dict(zip(fam.params, map(float, full[:n_b]), strict=True))
         names = list(fam.params)
         if k is not None:
-            label = f"{machine.cands[k][1]} in {machine.cands[k][0]}"
-            params[name][label] = float(full[n_b + k])
-            names.append(label)
+            eq, term = machine.cands[k]
+            labels = [f"{term} in {eq}"] if eq not in _BLOCKS else [_BLOCKS[eq][2]]
+            for label, e in zip(labels, fit.extra(k), strict=False):
+                params[name][label] = float(full[n_b + e])
+            names += labels
+            if eq in _BLOCKS:  # the time constant, fitted as its inverse
+                params[name][_BLOCKS[eq][3]] = 1.0 / float(full[n_b + machine.tau[eq]])
         ses[name] = fit.standard_errors(full, k, weights, names)
+        if k is not None and machine.cands[k][0] in _BLOCKS:
+            eq = machine.cands[k][0]
+            inv = float(full[n_b + machine.tau[eq]])
+            se_inv = fit.standard_errors(full, k, weights, [*names, "inv"]).get("inv", 0.0)
+            ses[name][_BLOCKS[eq][3]] = se_inv / inv**2
         rolls[name] = [np.asarray(y) for y in held_sim._simulate_jit(
             jnp.asarray(full[:n_b]), jnp.asarray(full[n_b:]))]  # fmt: skip
     measured_y = [None] * held_sim.n_recordings
@@ -875,6 +989,13 @@ def derived(family: str, p: dict[str, float]) -> dict[str, float]:
     elif family == "two-axis":
         out["x_q"] = p["x_q_minus_x_qp"] + p["x_qp"]
     return out
+
+
+def _value(full: np.ndarray, name: str, family: Family, n_b: int, k: int) -> float:
+    """A fitted value by name: a family parameter, else candidate ``k``'s coefficient."""
+    if name in family.params:
+        return float(full[family.params.index(name)])
+    return float(full[n_b + k])
 
 
 def _mean_error(errors: dict[str, float]) -> float:
@@ -931,6 +1052,8 @@ def write_terminal_report(out: str | Path, result: TerminalDiagnosis) -> Path:
             text = "" if v is None else f"{v:.5g}" + (f" ± {se:.2g}" if se else "")
             if v is not None and se is not None and se > abs(v):
                 text += " (not identified)"
+            elif v is not None and se is not None and se > 0.1 * abs(v):
+                text += " (poorly determined)"
             cells.append(text)
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     for model, p in result.parameters.items():
