@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -510,12 +510,14 @@ class TerminalConfig:
     ``threshold``: share of the refitted model's training output error (sum of squares) one
     term must remove to call the model structurally wrong (the extension must also simulate the
     held-out recordings better). ``refits``: candidates refitted in full after the score test.
+    ``max_terms``: terms (or blocks) the forward selection adds at most.
     ``frequency``: the system frequency in Hz (Omega_b = 2 pi f). ``max_steps``: of each
     Levenberg-Marquardt fit.
     """
 
     threshold: float = 0.2
     refits: int = 4
+    max_terms: int = 2
     frequency: float = 60.0
     max_steps: int = 300
     substeps: int = 2
@@ -642,11 +644,15 @@ def _split_held_out(
     )
 
 
+_SLOTS = 4  # coefficients a fit may free beside the family's parameters (one compilation)
+
+
 class _Fit:
-    """Levenberg-Marquardt on the output error (Marquardt's scaling), the family's parameters
-    free and at most one candidate's coefficient with them (a block's gain with its time
-    constant). One compiled Jacobian (forward mode through the simulation) serves every fit
-    and the score test."""
+    """Levenberg-Marquardt on the output error (Marquardt's scaling): the family's parameters
+    free and, with them, the coefficients of the chosen candidates (a block's gain with its
+    time constant). One compiled Jacobian (forward mode through the simulation, `_SLOTS`
+    columns beside the parameters, the unused ones switched off) serves every fit and the
+    score test."""
 
     def __init__(self, sim: _Simulator, max_steps: int) -> None:
         self.sim, self.max_steps = sim, max_steps
@@ -656,14 +662,14 @@ class _Fit:
         def residual(full: jax.Array, weights: jax.Array) -> jax.Array:
             return sim.residual(full[:n_b], full[n_b:], weights)
 
-        def jac(full: jax.Array, ks: jax.Array, active: jax.Array, weights: jax.Array):
-            cols = jnp.concatenate([jnp.arange(n_b), n_b + ks])
+        def jac(full: jax.Array, idx: jax.Array, active: jax.Array, weights: jax.Array):
+            cols = jnp.concatenate([jnp.arange(n_b), n_b + idx])
             on = jnp.concatenate([jnp.ones(n_b), active])
 
             def res(phi: jax.Array) -> jax.Array:
                 return residual(full.at[cols].add(phi * on), weights)
 
-            m = n_b + 2
+            m = n_b + _SLOTS
             return res(jnp.zeros(m)), jax.jacfwd(res)(jnp.zeros(m))
 
         self.residual = jax.jit(residual)
@@ -673,34 +679,38 @@ class _Fit:
         r = np.asarray(self.residual(jnp.asarray(full), weights))
         return float(r @ r) if np.all(np.isfinite(r)) else float("inf")
 
-    def extra(self, k: int | None) -> list[int]:
-        """The coefficients freed with candidate ``k``: its own, and a block's time constant."""
-        if k is None:
-            return []
-        tau = self.sim.m.block(k)
-        return [k] if tau is None else [k, tau]
+    def extra(self, ks: Sequence[int]) -> list[int]:
+        """The coefficients freed with candidates ``ks``: each one's own, and a block's time
+        constant after its gain."""
+        out = []
+        for k in ks:
+            tau = self.sim.m.block(k)
+            out += [k] if tau is None else [k, tau]
+        if len(out) > _SLOTS:
+            raise ValueError(f"at most {_SLOTS} coefficients beside the parameters")
+        return out
 
-    def jacobian(self, full: np.ndarray, k: int | None, weights: jax.Array):
+    def jacobian(self, full: np.ndarray, ks: Sequence[int], weights: jax.Array):
         """Residual and Jacobian (the family's parameters, then the `extra` coefficients)."""
-        extra = self.extra(k)
-        ks = np.asarray([*extra, 0, 0][:2])
-        active = np.asarray([1.0] * len(extra) + [0.0] * (2 - len(extra)))
-        r, J = self.jac(jnp.asarray(full), jnp.asarray(ks), jnp.asarray(active), weights)
+        extra = self.extra(ks)
+        idx = np.asarray([*extra, *[0] * (_SLOTS - len(extra))])
+        active = np.asarray([1.0] * len(extra) + [0.0] * (_SLOTS - len(extra)))
+        r, J = self.jac(jnp.asarray(full), jnp.asarray(idx), jnp.asarray(active), weights)
         return np.asarray(r), np.asarray(J)[:, : self.n_b + len(extra)]
 
-    def __call__(self, full: np.ndarray, k: int | None, weights: jax.Array) -> np.ndarray:
-        """The fitted parameter vector (family's parameters, then the coefficients)."""
+    def __call__(self, full: np.ndarray, ks: Sequence[int], weights: jax.Array) -> np.ndarray:
+        """The fitted vector (the family's parameters, then every coefficient)."""
         full = np.asarray(full, dtype=float).copy()
-        cols = [*range(self.n_b), *(self.n_b + e for e in self.extra(k))]
+        cols = [*range(self.n_b), *(self.n_b + e for e in self.extra(ks))]
         sse, lam = self.sse(full, weights), 1e-3
         if not np.isfinite(sse):
             return full
         for _ in range(self.max_steps):
-            r, J = self.jacobian(full, k, weights)
+            r, J = self.jacobian(full, ks, weights)
             A, g = J.T @ J, J.T @ r
             d = np.diag(A).copy()
             d = np.where(d > 0, d, 1.0)
-            improved = False
+            improved = converged = False
             while lam < 1e12:
                 try:
                     step = -np.linalg.solve(A + lam * np.diag(d), g)
@@ -720,34 +730,39 @@ class _Fit:
                 break
         return full
 
-    def score(self, full: np.ndarray, n_c: int, weights: jax.Array) -> np.ndarray:
-        """First-order share of the sum of squares each candidate's coefficient removes, the
-        family's parameters refitted alongside: (g_k^T P r)^2 / (g_k^T P g_k) / r^T r with P
-        the projection off the parameters' Jacobian (the score test of an omitted term)."""
-        out = np.zeros(n_c)
+    def score(
+        self, full: np.ndarray, chosen: Sequence[int], pool: Sequence[int], weights: jax.Array
+    ) -> dict[int, float]:
+        """First-order share of the sum of squares each candidate in ``pool`` removes, the
+        family's parameters and the ``chosen`` coefficients refitted alongside:
+        (g_k^T P r)^2 / (g_k^T P g_k) / r^T r with P the projection off their Jacobian (the
+        score test of an omitted term)."""
+        out: dict[int, float] = {}
+        n_fixed = self.n_b + len(self.extra(chosen))
         q = pr = None
-        for k in range(n_c):
-            r, J = self.jacobian(full, k, weights)
+        rr = 1.0
+        for k in pool:
+            r, J = self.jacobian(full, [*chosen, k], weights)
             if q is None:
-                Jb = J[:, : self.n_b]
+                Jb = J[:, :n_fixed]
                 q, _ = np.linalg.qr(Jb / np.maximum(np.linalg.norm(Jb, axis=0), 1e-300))
                 pr = r - q @ (q.T @ r)
                 rr = max(float(r @ r), 1e-300)
-            g = J[:, self.n_b]  # the candidate's own coefficient (a block's gain)
+            g = J[:, n_fixed]  # the candidate's own coefficient (a block's gain)
             pg = g - q @ (q.T @ g)
             den = float(pg @ pg)
-            if den > 1e-10 * max(float(g @ g), 1e-300):
-                out[k] = float(pg @ pr) ** 2 / den / rr
+            ok = den > 1e-10 * max(float(g @ g), 1e-300)
+            out[k] = float(pg @ pr) ** 2 / den / rr if ok else 0.0
         return out
 
     def standard_errors(
-        self, full: np.ndarray, k: int | None, weights: jax.Array, names: Sequence[str]
-    ) -> dict[str, float]:
-        """sigma^2 (J^T J)^-1 with sigma^2 the residual variance per sample (white noise)."""
-        r, J = self.jacobian(full, k, weights)
+        self, full: np.ndarray, ks: Sequence[int], weights: jax.Array
+    ) -> np.ndarray:
+        """Per column (the family's parameters, then the `extra` coefficients): the square
+        roots of sigma^2 (J^T J)^-1, sigma^2 the residual variance per sample (white noise)."""
+        r, J = self.jacobian(full, ks, weights)
         sigma2 = float(r @ r) / max(r.size - J.shape[1], 1)
-        cov = sigma2 * np.linalg.pinv(J.T @ J)
-        return {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+        return np.sqrt(np.maximum(np.diag(sigma2 * np.linalg.pinv(J.T @ J)), 0.0))
 
 
 def diagnose_terminal(
@@ -756,14 +771,20 @@ def diagnose_terminal(
     *,
     test: Sequence[Dataset] | None = None,
     config: TerminalConfig | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> TerminalDiagnosis:
     """Diagnose a built-in machine model from terminal channels (see the module docstring).
 
     ``train`` and ``test``: recordings with V, theta, P, Q (and optionally omega, P_m, v_f), on
     the machine's power base, events marked. Returns the verdict, the ranked candidates, the
     parameters before and after the extension and the errors of P and Q (and omega).
+    ``progress`` receives a line after each stage (the fit is minutes on long data).
     """
     from jaxdmd.grid.machines import canonical_model_name
+
+    def say(text: str) -> None:
+        if progress is not None:
+            progress(f"[{time.perf_counter() - started:6.1f} s] {text}")
 
     started = time.perf_counter()
     config = config or TerminalConfig()
@@ -797,10 +818,11 @@ def diagnose_terminal(
     # 1.-2. the refit, from typical values, with the reactances also halved and doubled
     typical = _guess(fam, recs)
     best: tuple[np.ndarray, float] | None = None
+    origin = typical
     for factor in (1.0, 0.5, 2.0):
         start = np.asarray([v * factor if n in _IMPEDANCE else v for n, v in
                             zip(fam.params, typical, strict=True)])  # fmt: skip
-        full = fit(np.concatenate([start, c0]), None, weights)
+        full = fit(np.concatenate([start, c0]), [], weights)
         sse = fit.sse(full, weights)
         if np.isfinite(sse) and (best is None or sse < best[1]):
             best, origin = (full, sse), start
@@ -809,162 +831,101 @@ def diagnose_terminal(
             "the model does not simulate the training recordings from typical parameters"
         )
     refit, sse_refit = best
+    say(f"refitted {fam.name} to the output error: NRMSE {np.sqrt(sse_refit):.3g} (root sum)")
 
-    # 3. the score test for every candidate, then the best few refitted in full
-    scores = fit.score(refit, n_c, weights)
-    order = [int(k) for k in np.argsort(-scores)]
-    ranked = []
-    fitted: dict[int, np.ndarray] = {}
-    for k in order[: config.refits]:
-        # from the refitted model, and from the start it came from (a missing effect may have
-        # pulled the refit far off: a constant field voltage under a voltage regulator)
-        starts = [refit, np.concatenate([origin, c0])]
-        if machine.cands[k][0] in _BLOCKS:  # and with the block at a typical gain
-            typical_gain = starts[1].copy()
-            typical_gain[n_b + k] = _TYPICAL_GAIN[machine.cands[k][0]](_rating(recs))
-            starts.append(typical_gain)
-        tries = [fit(s, k, weights) for s in starts]
-        sses = [fit.sse(f, weights) for f in tries]
-        fitted[k] = tries[int(np.argmin(sses))]
-        sse = min(sses)
-        share = float(1.0 - sse / sse_refit) if np.isfinite(sse) else 0.0
-        coefficient = float(fitted[k][n_b + k])
-        ranked.append(TerminalCandidate(*machine.cands[k], float(scores[k]), share, coefficient))
-    # best first; candidates that fit alike (within 1e-6 of the error) are the same model
-    # written two ways (e.g. either stator equation's reactance freed): the first in the fixed
-    # candidate order is named, the others reported as equivalent
-    ranked.sort(key=lambda c: (-round(c.explained or 0.0, 6), machine.cands.index(c.key)))
-    rest = [TerminalCandidate(*machine.cands[k], float(scores[k])) for k in order[config.refits :]]
-    pick = ranked[0] if ranked and (ranked[0].explained or 0.0) >= config.threshold else None
-    equivalent = [
-        c for c in ranked[1:]
-        if pick is not None and abs((c.explained or 0.0) - (pick.explained or 0.0)) <= 1e-6
-    ]  # fmt: skip
+    def held_error(full: np.ndarray) -> dict[str, float]:
+        e = held_sim.nrmse(full[:n_b], full[n_b:])
+        return {o: float(np.mean(e[:, j])) for j, o in enumerate(outputs)}
+
+    # 3. forward selection: every candidate ranked by the score test, the best few refitted in
+    # full, the one that removes the largest share of the error left added if that share
+    # reaches the threshold and the held-out recordings simulate better; then again
+    chosen: list[int] = []
+    steps: list[_Step] = []
+    first: list[TerminalCandidate] = []
+    current, sse_now, held_now = refit, sse_refit, held_error(refit)
+    stopped = ""
+    for _ in range(config.max_terms):
+        pool = [k for k in range(n_c) if k not in chosen and _fits_slots(fit, [*chosen, k])]
+        if not pool:
+            break
+        scores = fit.score(current, chosen, pool, weights)
+        order = sorted(pool, key=lambda k: -scores[k])
+        ranked, fitted = [], {}
+        for k in order[: config.refits]:
+            # from the current model, and from the typical values it started at (a missing
+            # effect may have pulled the refit far off: a constant field voltage under a
+            # voltage regulator), and for a block also with a typical gain
+            starts = [current, np.concatenate([origin, current[n_b:]])]
+            if machine.cands[k][0] in _BLOCKS:
+                typical_gain = starts[1].copy()
+                typical_gain[n_b + k] = _TYPICAL_GAIN[machine.cands[k][0]](_rating(recs))
+                starts.append(typical_gain)
+            tries = [fit(s, [*chosen, k], weights) for s in starts]
+            sses = [fit.sse(f, weights) for f in tries]
+            fitted[k] = tries[int(np.argmin(sses))]
+            share = float(1.0 - min(sses) / sse_now) if np.isfinite(min(sses)) else 0.0
+            coefficient = float(fitted[k][n_b + k])
+            ranked.append(TerminalCandidate(*machine.cands[k], scores[k], share, coefficient))
+        # best first; candidates that fit alike (within 1e-6 of the error) are the same model
+        # written two ways (e.g. either stator equation's reactance freed): the first in the
+        # fixed candidate order is named, the others reported as equivalent
+        ranked.sort(key=lambda c: (-round(c.explained or 0.0, 6), machine.cands.index(c.key)))
+        if not first:
+            rest = order[config.refits :]
+            first = ranked + [TerminalCandidate(*machine.cands[k], scores[k]) for k in rest]
+        pick = ranked[0] if ranked and (ranked[0].explained or 0.0) >= config.threshold else None
+        if ranked:
+            best_c = ranked[0]
+            say(
+                f"round {len(steps) + 1}: best {best_c.term} in {best_c.equation}, "
+                f"{best_c.explained:.0%} of the error left"
+            )
+        if pick is None:
+            break
+        k = machine.cands.index(pick.key)
+        held_new = held_error(fitted[k])
+        if _mean_error(held_new) >= _mean_error(held_now):
+            stopped = (
+                f"{_adding(pick)} fits the training data better ({pick.explained:.0%} of the "
+                "error left) but does not simulate the held-out data better"
+            )
+            break
+        equivalent = [
+            c for c in ranked[1:] if abs((c.explained or 0.0) - (pick.explained or 0.0)) <= 1e-6
+        ]
+        chosen.append(k)
+        current, sse_now, held_now = fitted[k], fit.sse(fitted[k], weights), held_new
+        se = fit.standard_errors(current, chosen, weights)
+        steps.append(_Step(pick, tuple(equivalent), tuple(chosen), current, se))
 
     # 4. the gain on held-out data
-    models = {"refit": (refit, None)}
-    if pick is not None:
-        k = machine.cands.index((pick.equation, pick.term))
-        models["extended"] = (fitted[k], k)
+    models = {"refit": (refit, [])}
+    if chosen:
+        models["extended"] = (current, chosen)
     errors: dict[str, dict[str, dict[str, float]]] = {"train": {}, "held_out": {}}
-    for name, (full, _) in models.items():
-        for where, s in (("train", sim), ("held_out", held_sim)):
-            e = s.nrmse(full[:n_b], full[n_b:])
-            errors[where][name] = {o: float(np.mean(e[:, j])) for j, o in enumerate(outputs)}
-    if pick is not None and _mean_error(errors["held_out"]["extended"]) >= _mean_error(
-        errors["held_out"]["refit"]
-    ):
-        cause: dict[str, Any] = {
-            "kind": "none",
-            "summary": (
-                f"adding {pick.term} to the {_LABELS[pick.equation]} fits the training data "
-                f"better ({pick.explained:.0%} of its error) but does not simulate the "
-                "held-out data better: no structural cause is named"
-            ),
-        }
-        models.pop("extended")
-        for where in errors.values():
-            where.pop("extended")
-    elif pick is not None and pick.equation in _BLOCKS:
-        u = pick.equation
-        drive, what, gain, tname, _ = _BLOCKS[u]
-        k = machine.cands.index(pick.key)
-        full = fitted[k]
-        inv_t = full[n_b + machine.tau[u]]
-        se = fit.standard_errors(full, k, weights, [*fam.params, gain, "inv"])
-        loose = [  # standard errors above a tenth of the value
-            n for n in (*fam.params, gain) if se[n] > 0.1 * abs(_value(full, n, fam, n_b, k))
-        ]
-        cause = {
-            "kind": "missing variable",
-            "equation": u,
-            "equation_kind": "input",
-            "term": pick.term,
-            "explained": pick.explained,
-            "equivalent": [{"equation": c.equation, "term": c.term} for c in equivalent],
-            "summary": (
-                f"{u} ({_LABELS[u]}) is not constant: {what} ({tname} d{u}/dt = {u}_0 - {u} "
-                f"- {gain} ({drive})) with {gain} = {pick.coefficient:.4g} "
-                f"± {se[gain]:.2g}, {tname} = {1.0 / inv_t:.3g} s removes "
-                f"{pick.explained:.0%} of the refitted model's output error on the training "
-                "recordings"
-                + (
-                    f"; poorly determined by these data: {', '.join(loose)} (standard errors "
-                    f"above 10 % of the values): measuring {u} would separate them"
-                    if loose
-                    else ""
-                )
-                + "; held-out NRMSE "
-                + ", ".join(
-                    f"{o} {errors['held_out']['refit'][o]:.3g} -> "
-                    f"{errors['held_out']['extended'][o]:.3g}"
-                    for o in outputs
-                )
-            ),
-        }
-    elif pick is not None:
-        cause = {
-            "kind": "missing term",
-            "equation": pick.equation,
-            "equation_kind": "algebraic" if pick.equation.startswith("stator") else "state",
-            "term": pick.term,
-            "explained": pick.explained,
-            "equivalent": [{"equation": c.equation, "term": c.term} for c in equivalent],
-            "summary": (
-                f"the {_LABELS[pick.equation]} lacks a term {pick.term}: adding it removes "
-                f"{pick.explained:.0%} of the refitted model's output error on the training "
-                "recordings"
-                + "".join(
-                    f" (adding {c.term} to the {_LABELS[c.equation]} instead fits the same: "
-                    "the data cannot tell the two apart)"
-                    for c in equivalent
-                )
-                + "; held-out NRMSE "
-                + ", ".join(
-                    f"{o} {errors['held_out']['refit'][o]:.3g} -> "
-                    f"{errors['held_out']['extended'][o]:.3g}"
-                    for o in outputs
-                )
-            ),
-        }
-    else:
-        best_share = ranked[0].explained if ranked else 0.0
-        cause = {
-            "kind": "none",
-            "summary": (
-                f"no single term removes {config.threshold:.0%} of the refitted model's output "
-                f"error (the best: {best_share:.0%}); the model agrees with the terminal data "
-                "as far as they can tell"
-            ),
-        }
-    params, ses, rolls = {}, {}, {}
-    for name, (full, k) in models.items():
-        params[name] = dict(zip(fam.params, map(float, full[:n_b]), strict=True))
-        names = list(fam.params)
-        if k is not None:
-            eq, term = machine.cands[k]
-            labels = [f"{term} in {eq}"] if eq not in _BLOCKS else [_BLOCKS[eq][2]]
-            for label, e in zip(labels, fit.extra(k), strict=False):
-                params[name][label] = float(full[n_b + e])
-            names += labels
-            if eq in _BLOCKS:  # the time constant, fitted as its inverse
-                params[name][_BLOCKS[eq][3]] = 1.0 / float(full[n_b + machine.tau[eq]])
-        ses[name] = fit.standard_errors(full, k, weights, names)
-        if k is not None and machine.cands[k][0] in _BLOCKS:
-            eq = machine.cands[k][0]
-            inv = float(full[n_b + machine.tau[eq]])
-            se_inv = fit.standard_errors(full, k, weights, [*names, "inv"]).get("inv", 0.0)
-            ses[name][_BLOCKS[eq][3]] = se_inv / inv**2
-        rolls[name] = [np.asarray(y) for y in held_sim._simulate_jit(
-            jnp.asarray(full[:n_b]), jnp.asarray(full[n_b:]))]  # fmt: skip
-    measured_y = [None] * held_sim.n_recordings
+    params: dict[str, dict[str, float]] = {}
+    ses: dict[str, dict[str, float]] = {}
+    rolls: dict[str, list[np.ndarray]] = {}
+    for name, (full, ks) in models.items():
+        e = sim.nrmse(full[:n_b], full[n_b:])
+        errors["train"][name] = {o: float(np.mean(e[:, j])) for j, o in enumerate(outputs)}
+        errors["held_out"][name] = held_error(full)
+        labels, values = _labelled(machine, fam, full, ks)
+        se = fit.standard_errors(full, ks, weights)
+        params[name] = dict(zip(labels, values, strict=True))
+        ses[name] = dict(zip(labels, _value_errors(machine, fam, full, ks, se), strict=True))
+        runs = held_sim._simulate_jit(jnp.asarray(full[:n_b]), jnp.asarray(full[n_b:]))
+        rolls[name] = [np.asarray(y) for y in runs]
+    cause = _verdict(steps, stopped, first, errors, outputs, machine, fam, config)
+    measured_y: list[np.ndarray] = [np.empty(0)] * held_sim.n_recordings
     for idx, group in held_sim.groups:
         for j, i in enumerate(idx):
             measured_y[int(i)] = np.asarray(group["y"][j])
     return TerminalDiagnosis(
         family=fam.name,
         cause=cause,
-        candidates=tuple(ranked + rest),
+        candidates=tuple(first),
         parameters=params,
         standard_errors=ses,
         errors=errors,
@@ -978,6 +939,146 @@ def diagnose_terminal(
     )
 
 
+@dataclass(frozen=True)
+class _Step:
+    """A term (or block) the forward selection added, with the model it gave."""
+
+    pick: TerminalCandidate
+    equivalent: tuple[TerminalCandidate, ...]
+    ks: tuple[int, ...]  # every candidate chosen so far, this one last
+    full: np.ndarray
+    se: np.ndarray  # per column of the fit (`_Fit.standard_errors`)
+
+
+def _adding(c: TerminalCandidate) -> str:
+    """A candidate in words: "adding omega - 1 to the d omega/dt (swing)", "a governor ..."."""
+    if c.equation in _BLOCKS:
+        drive, what, *_ = _BLOCKS[c.equation]
+        return f"{what} ({c.equation} driven by {drive})"
+    return f"adding {c.term} to the {_LABELS[c.equation]}"
+
+
+def _fits_slots(fit: _Fit, ks: Sequence[int]) -> bool:
+    try:
+        fit.extra(ks)
+    except ValueError:
+        return False
+    return True
+
+
+def _labelled(
+    machine: _Machine, family: Family, full: np.ndarray, ks: Sequence[int]
+) -> tuple[list[str], list[float]]:
+    """Names and values of a fit's columns: the family's parameters, then per candidate its
+    coefficient (``term in equation``, or a block's gain) and a block's time constant."""
+    n_b = len(family.params)
+    labels, values = list(family.params), [float(v) for v in full[:n_b]]
+    for k in ks:
+        eq, term = machine.cands[k]
+        if eq in _BLOCKS:
+            labels += [_BLOCKS[eq][2], _BLOCKS[eq][3]]
+            values += [float(full[n_b + k]), 1.0 / float(full[n_b + machine.tau[eq]])]
+        else:
+            labels.append(f"{term} in {eq}")
+            values.append(float(full[n_b + k]))
+    return labels, values
+
+
+def _value_errors(
+    machine: _Machine, family: Family, full: np.ndarray, ks: Sequence[int], se: np.ndarray
+) -> list[float]:
+    """Standard errors in the order of `_labelled` (a time constant's from its inverse's)."""
+    n_b = len(family.params)
+    out = [float(s) for s in se[:n_b]]
+    j = n_b
+    for k in ks:
+        eq = machine.cands[k][0]
+        out.append(float(se[j]))
+        j += 1
+        if eq in _BLOCKS:
+            inv = float(full[n_b + machine.tau[eq]])
+            out.append(float(se[j]) / inv**2)
+            j += 1
+    return out
+
+
+def _step_summary(step: _Step, machine: _Machine, family: Family) -> str:
+    pick = step.pick
+    if pick.equation not in _BLOCKS:
+        return (
+            f"the {_LABELS[pick.equation]} lacks a term {pick.term}: adding it removes "
+            f"{pick.explained:.0%} of the output error left on the training recordings"
+            + "".join(
+                f" ({_adding(c)} instead fits the same: the data cannot tell the two apart)"
+                for c in step.equivalent
+            )
+        )
+    u = pick.equation
+    drive, what, gain, tname, _ = _BLOCKS[u]
+    labels, values = _labelled(machine, family, step.full, step.ks)
+    errs = _value_errors(machine, family, step.full, step.ks, step.se)
+    value = dict(zip(labels, values, strict=True))
+    se = dict(zip(labels, errs, strict=True))
+    # standard errors above a tenth of the value: the data leave them loose
+    loose = [n for n in (*family.params, gain) if se[n] > 0.1 * abs(value[n])]
+    return (
+        f"{u} ({_LABELS[u]}) is not constant: {what} ({tname} d{u}/dt = {u}_0 - {u} - {gain} "
+        f"({drive})) with {gain} = {value[gain]:.4g} ± {se[gain]:.2g}, {tname} = "
+        f"{value[tname]:.3g} s removes {pick.explained:.0%} of the output error left on the "
+        "training recordings"
+        + (
+            f"; poorly determined by these data: {', '.join(loose)} (standard errors above "
+            f"10 % of the values): measuring {u} would separate them"
+            if loose
+            else ""
+        )
+    )
+
+
+def _verdict(
+    steps: Sequence[_Step], stopped: str, first: Sequence[TerminalCandidate],
+    errors: dict[str, dict[str, dict[str, float]]], outputs: Sequence[str],
+    machine: _Machine, family: Family, config: TerminalConfig,
+) -> dict[str, Any]:  # fmt: skip
+    """The cause: the first term or block added (the largest), the others after it."""
+    if not steps:
+        if stopped:
+            return {"kind": "none", "summary": f"{stopped}: no structural cause is named"}
+        best = first[0].explained if first and first[0].explained is not None else 0.0
+        return {
+            "kind": "none",
+            "summary": (
+                f"no single term removes {config.threshold:.0%} of the refitted model's output "
+                f"error (the best: {best:.0%}); the model agrees with the terminal data as far "
+                "as they can tell"
+            ),
+        }
+    head = steps[0].pick
+    texts = [_step_summary(s, machine, family) for s in steps]
+    then = "".join(f"; then {t}" for t in texts[1:])
+    if stopped:
+        then += f"; then {stopped}, and the selection stops"
+    held = errors["held_out"]
+    block = head.equation in _BLOCKS
+    kind = "input" if block else "algebraic" if head.equation.startswith("stator") else "state"
+    return {
+        "kind": "missing variable" if block else "missing term",
+        "equation": head.equation,
+        "equation_kind": kind,
+        "term": head.term,
+        "explained": head.explained,
+        "equivalent": [{"equation": c.equation, "term": c.term} for c in steps[0].equivalent],
+        "further": [
+            {"equation": s.pick.equation, "term": s.pick.term, "explained": s.pick.explained}
+            for s in steps[1:]
+        ],
+        "summary": texts[0]
+        + then
+        + "; held-out NRMSE "
+        + ", ".join(f"{o} {held['refit'][o]:.3g} -> {held['extended'][o]:.3g}" for o in outputs),
+    }
+
+
 def derived(family: str, p: dict[str, float]) -> dict[str, float]:
     """The familiar quantities from a family's fitted parameters: H = M / 2 [s] and the
     synchronous reactances (PSAT 5.1: x_q = c_e'd + c_e''d + x'_d, the equilibrium's relation)."""
@@ -989,13 +1090,6 @@ def derived(family: str, p: dict[str, float]) -> dict[str, float]:
     elif family == "two-axis":
         out["x_q"] = p["x_q_minus_x_qp"] + p["x_qp"]
     return out
-
-
-def _value(full: np.ndarray, name: str, family: Family, n_b: int, k: int) -> float:
-    """A fitted value by name: a family parameter, else candidate ``k``'s coefficient."""
-    if name in family.params:
-        return float(full[family.params.index(name)])
-    return float(full[n_b + k])
 
 
 def _mean_error(errors: dict[str, float]) -> float:

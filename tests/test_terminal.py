@@ -26,6 +26,7 @@ from jaxdmd.grid.operating import operating_points
 from jaxdmd.grid.protocol import generator_dataset, simulate_each
 from jaxdmd.terminal import (
     FAMILIES,
+    TerminalConfig,
     candidates,
     diagnose_terminal,
     is_terminal,
@@ -208,7 +209,10 @@ def test_an_unmeasured_field_voltage_under_a_regulator_is_named_and_its_confound
     g = case39().gen_index(GEN)
     p = machine_params(model)
     train, test = recordings(model)
-    result = diagnose_terminal(train, "psat-5.1", test=test)
+    # one term: the second round (its best, a governor, does not simulate the held-out data
+    # better) takes minutes in the regulator's flat valley and is not what this test checks
+    config = TerminalConfig(max_terms=1)
+    result = diagnose_terminal(train, "psat-5.1", test=test, config=config)
     cause = result.cause
     assert (cause["kind"], cause["equation"]) == ("missing variable", "v_f"), cause
     ext = result.parameters["extended"]
