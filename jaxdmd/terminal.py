@@ -10,7 +10,8 @@ module does that and goes on to say which equation is wrong:
    parameters: M, x'_d, x_d - x'_d, T'_d0, ... as in ``jaxdmd.grid.machines``) is driven by the
    measured V and theta; the rotor angle and the internal voltages are latent states. Each
    recording starts from the model's own equilibrium at its pre-fault operating point: the
-   latent states and the unmeasured inputs (P_m, v_f: constant, which the report says) solve
+   latent states and the unmeasured inputs (P_m, v_f: held there, which the report says,
+   unless step 3 names a governor or exciter) solve
    "every rate vanishes, simulated P and Q equal the measured ones" (Gauss-Newton, inside the
    simulation, so that the fit differentiates through it).
 2. **Refit.** The parameters are fitted to the output error (P, Q and omega, each scaled by its
@@ -21,9 +22,10 @@ module does that and goes on to say which equation is wrong:
    unmeasured input, a governor or exciter block around its pre-fault value) is ranked by the
    score (Lagrange-multiplier) test at the refitted model: the drop in the sum of squares that
    freeing its coefficient gives to first order, with the model's own parameters refitted
-   alongside (one Jacobian for all candidates). The best few are refitted in full; the one that
-   explains the largest share of the remaining error names the equation and the term, if that
-   share exceeds the threshold and the extension also simulates held-out data better.
+   alongside (one compiled Jacobian serves every candidate). The best few are refitted in
+   full; the one that explains the largest share of the remaining error names the equation and
+   the term, if that share exceeds the threshold and the extension also simulates held-out data
+   better. Then again from the extended model (forward selection, ``max_terms``).
 4. **The gain.** Held-out recordings simulated before and after: NRMSE of P and Q.
 
 Nothing here knows an answer: the candidate terms are a generic pool (a constant, the speed
@@ -51,6 +53,7 @@ __all__ = [
     "TERMINAL_CHANNELS",
     "TerminalConfig",
     "TerminalDiagnosis",
+    "candidates",
     "derived",
     "diagnose_terminal",
     "is_terminal",
