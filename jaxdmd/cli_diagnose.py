@@ -126,12 +126,11 @@ def run_diagnose(args: argparse.Namespace) -> int:
 def _terminal_family(spec: str, first: Dataset) -> str | None:
     """The built-in model to diagnose from terminal channels, when the data call for it (they
     have V, theta, P, Q and lack the model's rotor angle or internal voltages)."""
-    from pathlib import Path
-
+    from jaxdmd.diagnose import is_model_file
     from jaxdmd.grid.machines import canonical_model_name
     from jaxdmd.terminal import FAMILIES, is_terminal
 
-    if Path(spec).suffix == ".py" or Path(spec).exists():
+    if is_model_file(spec):
         return None
     try:
         name = canonical_model_name(spec)

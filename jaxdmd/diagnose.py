@@ -277,12 +277,19 @@ def parse_model(text: str, name: str = "model", states: Sequence[str] = ()) -> U
     return UserModel(name=name, source=skeleton.source, targets=tuple(targets), params=params)
 
 
+def is_model_file(spec: str) -> bool:
+    """Whether ``--model`` names a model file (a ``.py`` path, or any existing file) rather
+    than a built-in model."""
+    path = Path(spec)
+    return path.suffix == ".py" or path.exists()
+
+
 def load_model(spec: str, states: Sequence[str] = (), channels: Sequence[str] = ()) -> UserModel:
     """A built-in model by name (`builtin_model`), or a model file (see `parse_model`).
 
     ``states``: the data's state channels; ``channels``: all of the data's channel names."""
     path = Path(spec)
-    if path.suffix == ".py" or path.exists():
+    if is_model_file(spec):
         try:
             text = path.read_text()
         except OSError as err:

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdmd.data import Dataset, event_samples
+from jaxdmd.data import Dataset
 
 __all__ = [
     "FAMILIES",
@@ -95,7 +95,7 @@ class Family:
 
     ``states``: the simulated states (delta and omega first; the classical model's constant
     internal voltage is the state e_qp with zero rate). ``params``: parameter names, each with a
-    typical value on the machine's own base (``_typical``) scaled to the data's base.
+    typical value on the machine's own base (``_TYPICAL``) scaled to the data's base.
     """
 
     name: str
@@ -183,11 +183,13 @@ class _Machine:
     def __init__(self, family: Family, omega_b: float, measured: Sequence[str] = ()) -> None:
         self.family = family
         self.omega_b = omega_b
+        self.measured = tuple(u for u in family.inputs if u in measured)
         self.cands = candidates(family, measured)
         self.index = {name: i for i, name in enumerate(family.params)}
         self.equations = _dynamic(family)
         self.pool = _de_pool(family)
-        self.blocks = tuple(u for u in family.inputs if (u, _BLOCKS[u][0]) in self.cands)
+        # the unmeasured inputs: each a state of its block (held with a zero gain)
+        self.blocks = tuple(u for u in family.inputs if u not in self.measured)
         # the coefficient vector: one per candidate, then each block's inverse time constant
         self.n_c = len(self.cands) + len(self.blocks)
         self.tau = {u: len(self.cands) + j for j, u in enumerate(self.blocks)}
@@ -231,15 +233,21 @@ class _Machine:
             out[u] = inv_t * (ref[u] - x[u] - gain * drive)
         return out
 
+    def reactances(self, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The stator's X_d (multiplying i_d in the q-axis equation) and X_q (i_q in the d-axis
+        one): x'_d on both axes but in the two-axis (x'_q) and one-axis (x_q) models."""
+        X_d = self._p(theta, "x_dp")
+        X_q = {"two-axis": "x_qp", "one-axis": "x_q"}.get(self.family.name)
+        return X_d, X_d if X_q is None else self._p(theta, X_q)
+
     def electrical(
         self, theta: jax.Array, c: jax.Array, x: dict[str, jax.Array], V: jax.Array, th: jax.Array
     ) -> dict[str, jax.Array]:
         """Currents and powers for states ``x`` and terminal voltage V at angle ``th``."""
-        f, p = self.family.name, lambda n: self._p(theta, n)
+        f = self.family.name
         v_d, v_q = V * jnp.sin(x["delta"] - th), V * jnp.cos(x["delta"] - th)
-        r_a, X_d = p("r_a"), p("x_dp")
-        X_q = {"two-axis": "x_qp", "one-axis": "x_q"}.get(f)
-        X_q = X_d if X_q is None else p(X_q)
+        r_a = self._p(theta, "r_a")
+        X_d, X_q = self.reactances(theta)
         e_q = x["e_qp"]
         e_d = {"psat-5.1": "e_dpp", "two-axis": "e_dp"}.get(f)
         e_d = x[e_d] if e_d else jnp.zeros_like(V)
@@ -260,8 +268,9 @@ class _Machine:
     def rates(
         self, theta: jax.Array, c: jax.Array, x: dict[str, jax.Array], V: jax.Array,
         th: jax.Array, u: dict[str, jax.Array],
-    ) -> dict[str, jax.Array]:  # fmt: skip
-        """d x/dt of every state (the classical model's e_qp: 0)."""
+    ) -> tuple[dict[str, jax.Array], dict[str, jax.Array]]:  # fmt: skip
+        """d x/dt of every state (the classical model's e_qp: 0), and the currents and powers
+        (`electrical`) they used."""
         f, p = self.family.name, lambda n: self._p(theta, n)
         el = self.electrical(theta, c, x, V, th)
         out = {
@@ -292,7 +301,7 @@ class _Machine:
         ext = C.at[self.de_rc].set(c[self.de_k]) @ jnp.stack(values)
         for i, eq in enumerate(self.equations):
             out[eq] = out[eq] + ext[i]
-        return out
+        return out, el
 
     def start(
         self, theta: jax.Array, V: jax.Array, th: jax.Array, P: jax.Array, Q: jax.Array
@@ -300,14 +309,14 @@ class _Machine:
         """The base family's equilibrium in closed form (``jaxdmd.grid.machines.initial_state``
         written with this family's parameters): the Gauss-Newton start."""
         f, p = self.family.name, lambda n: self._p(theta, n)
-        r_a, X_d = p("r_a"), p("x_dp")
-        x_q = {
+        r_a = p("r_a")
+        X_d, X_q = self.reactances(theta)
+        x_q = {  # the reactance that locates the q axis
             "psat-5.1": lambda: p("c_edp") + p("c_edpp") + X_d,
             "two-axis": lambda: p("x_q_minus_x_qp") + p("x_qp"),
             "one-axis": lambda: p("x_q"),
             "classical": lambda: X_d,
         }[f]()
-        X_q = {"two-axis": lambda: p("x_qp"), "one-axis": lambda: p("x_q")}.get(f, lambda: X_d)()
         Vc = V * jnp.exp(1j * th)
         current = jnp.conj((P + 1j * Q) / Vc)
         delta = jnp.angle(Vc + (r_a + 1j * x_q) * current)
@@ -342,26 +351,27 @@ def _pre_event(ds: Dataset) -> int:
 def _recording(ds: Dataset, outputs: Sequence[str], inputs: Sequence[str]) -> dict[str, Any]:
     """One recording's arrays for the simulation: the steps ``h``, the terminal voltage as
     recorded (the outputs use each sample's own values) and on each interval (``left``,
-    ``right``: held across an event), the measured inputs likewise, the outputs ``y`` [O, n]
-    with their ranges, and the pre-fault operating point (``start``)."""
-    t = np.asarray(ds.t, dtype=float)
-    jump = event_samples(t, ds.events)[1:]
+    ``right``: :func:`jaxdmd.select._played`, held across an event), the measured inputs
+    likewise, the outputs ``y`` [O, n] with their ranges, and the pre-fault operating point
+    (``start``)."""
+    from jaxdmd.select import _played
+
+    ds = ds.with_values({"theta": np.unwrap(np.asarray(ds["theta"], dtype=float))})
     series = {n: np.asarray(ds[n], dtype=float) for n in ("V", "theta", *outputs, *inputs)}
-    series["theta"] = np.unwrap(series["theta"])
-    played = {"V": series["V"], "th": series["theta"], **{n: series[n] for n in inputs}}
+    played = _played(ds, ["V", "theta", *inputs])
     y = np.stack([series[o] for o in outputs])
     scale = np.ptp(y, axis=1)
     k = _pre_event(ds)
-    start = {o: np.mean(series[o][:k]) for o in ("P", "Q", *outputs)}
+    start = {o: np.mean(series[o][:k]) for o in outputs}  # P and Q among them
     start.update(V=series["V"][0], theta=series["theta"][0])
     start.setdefault("omega", np.asarray(1.0))
     start.update({f"{n}_0": series[n][0] for n in inputs})
     return {
-        "h": np.diff(t),
+        "h": np.diff(np.asarray(ds.t, dtype=float)),
         "V": series["V"],
-        "th": series["theta"],
-        "left": {n: x[:-1] for n, x in played.items()},
-        "right": {n: np.where(jump, x[:-1], x[1:]) for n, x in played.items()},
+        "theta": series["theta"],
+        "left": played.left,
+        "right": played.right,
         "y": y,
         "scale": np.where(scale > 0, scale, 1.0),
         "start": {n: np.asarray(v, dtype=float) for n, v in start.items()},
@@ -374,23 +384,24 @@ class _Simulator:
 
     def __init__(
         self, machine: _Machine, recordings: Sequence[dict[str, Any]], outputs: Sequence[str],
-        measured_inputs: Sequence[str], substeps: int = 2, newton: int = 12,
+        substeps: int = 2, newton: int = 12,
     ) -> None:  # fmt: skip
         self.m = machine
         self.outputs = tuple(outputs)
-        self.measured = tuple(measured_inputs)
-        self.unknown_inputs = tuple(u for u in machine.family.inputs if u not in self.measured)
+        self.measured = machine.measured
         self.substeps = substeps
         self.newton = newton
         self.n_base = len(machine.family.params)
-        self.n_recordings = len(recordings)
-        lengths = sorted({r["y"].shape[1] for r in recordings})
+        self.y = [r["y"] for r in recordings]  # the measured outputs, [O, n] each
+        self.scale = [r["scale"] for r in recordings]
+        lengths = sorted({y.shape[1] for y in self.y})
         self.groups = []  # (indices, stacked arrays)
         for n in lengths:
-            idx = [i for i, r in enumerate(recordings) if r["y"].shape[1] == n]
+            idx = [i for i, y in enumerate(self.y) if y.shape[1] == n]
             stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)),
                                    *(recordings[i] for i in idx))  # fmt: skip
             self.groups.append((np.asarray(idx), stacked))
+        self._simulate = jax.jit(self.simulate)
 
     def _equilibrium(self, theta: jax.Array, c: jax.Array, s: dict[str, jax.Array]) -> tuple[
         dict[str, jax.Array], dict[str, jax.Array]
@@ -401,20 +412,19 @@ class _Simulator:
         V, th, omega = s["V"], s["theta"], s["omega"]
         z0 = self.m.start(theta, V, th, s["P"], s["Q"])
         latent = [n for n in self.m.family.states if n != "omega"]
-        names = [*latent, *self.unknown_inputs]
+        names = [*latent, *self.m.blocks]
         rows = [n for n in self.m.family.states if n != "delta"]
 
         def split(z: jax.Array) -> tuple[dict[str, jax.Array], dict[str, jax.Array]]:
             x = {n: z[i] for i, n in enumerate(latent)}
             x["omega"] = omega
-            u = {n: z[len(latent) + i] for i, n in enumerate(self.unknown_inputs)}
+            u = {n: z[len(latent) + i] for i, n in enumerate(self.m.blocks)}
             u.update({n: s[f"{n}_0"] for n in self.measured})
             return x, u
 
         def residual(z: jax.Array, theta: jax.Array, c: jax.Array) -> jax.Array:
             x, u = split(z)
-            r = self.m.rates(theta, c, x, V, th, u)
-            el = self.m.electrical(theta, c, x, V, th)
+            r, el = self.m.rates(theta, c, x, V, th, u)
             return jnp.stack([*(r[n] for n in rows), el["P"] - s["P"], el["Q"] - s["Q"]])
 
         def newton(z: jax.Array, theta: jax.Array, c: jax.Array) -> jax.Array:
@@ -440,7 +450,7 @@ class _Simulator:
         def field(x: jax.Array, w: dict[str, jax.Array]) -> jax.Array:
             xs = {n: x[i] for i, n in enumerate(states)}
             u = {**{n: xs[n] for n in self.m.blocks}, **{n: w[n] for n in self.measured}}
-            r = self.m.rates(theta, c, xs, w["V"], w["th"], u)
+            r, _ = self.m.rates(theta, c, xs, w["V"], w["theta"], u)
             r.update(self.m.block_rates(c, xs, w["V"], ref))
             return jnp.stack([r[n] for n in states])
 
@@ -459,15 +469,19 @@ class _Simulator:
         _, xs = jax.lax.scan(step, x_init, (rec["h"], rec["left"], rec["right"]))
         xs = jnp.concatenate([x_init[None], xs])  # [n, S]
         xd = {n: xs[:, i] for i, n in enumerate(states)}
-        el = self.m.electrical(theta, c, xd, rec["V"], rec["th"])
+        el = self.m.electrical(theta, c, xd, rec["V"], rec["theta"])
         out = {**el, "omega": xd["omega"]}
         return jnp.stack([out[o] for o in self.outputs])
 
+    def _runs(self, theta: jax.Array, c: jax.Array):
+        """Per group of equal-length recordings: its indices, arrays and outputs [B, O, n]."""
+        for idx, group in self.groups:
+            yield idx, group, jax.vmap(lambda r: self._rollout(theta, c, r))(group)
+
     def simulate(self, theta: jax.Array, c: jax.Array) -> list[jax.Array]:
         """The outputs ``[O, n]`` of every recording, in order."""
-        out: list[Any] = [None] * self.n_recordings
-        for idx, group in self.groups:
-            sims = jax.vmap(lambda r: self._rollout(theta, c, r))(group)
+        out: list[Any] = [None] * len(self.y)
+        for idx, _, sims in self._runs(theta, c):
             for j, i in enumerate(idx):
                 out[int(i)] = sims[j]
         return out
@@ -476,29 +490,27 @@ class _Simulator:
         """Scaled output errors of every recording (weight 0 leaves a recording out); the sum
         of squares is the sum over recordings and outputs of the NRMSE squared."""
         parts = []
-        for idx, group in self.groups:
-            sims = jax.vmap(lambda r: self._rollout(theta, c, r))(group)
+        for idx, group, sims in self._runs(theta, c):
             n = sims.shape[2]
             r = (sims - group["y"]) / group["scale"][:, :, None] / np.sqrt(n)
             parts.append((weights[idx][:, None, None] * r).ravel())
         return jnp.concatenate(parts)
 
-    def nrmse(self, theta: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """NRMSE ``[B, O]`` of every recording's outputs (inf where a rollout blew up)."""
-        sims = self._simulate_jit(jnp.asarray(theta), jnp.asarray(c))
-        out = np.zeros((self.n_recordings, len(self.outputs)))
-        for idx, group in self.groups:
-            for j, i in enumerate(idx):
-                sim, y = np.asarray(sims[int(i)]), np.asarray(group["y"][j])
-                err = np.sqrt(np.mean((sim - y) ** 2, axis=1)) / np.asarray(group["scale"][j])
-                out[int(i)] = np.where(np.all(np.isfinite(sim), axis=1), err, np.inf)
-        return out
+    def outputs_of(self, full: np.ndarray) -> list[np.ndarray]:
+        """The simulated outputs of every recording for a fitted vector (parameters, then
+        coefficients)."""
+        n_b = self.n_base
+        runs = self._simulate(jnp.asarray(full[:n_b]), jnp.asarray(full[n_b:]))
+        return [np.asarray(y) for y in runs]
 
-    @property
-    def _simulate_jit(self):
-        if not hasattr(self, "_sim_jit"):
-            self._sim_jit = jax.jit(self.simulate)
-        return self._sim_jit
+    def nrmse(self, sims: Sequence[np.ndarray]) -> dict[str, float]:
+        """Mean NRMSE over the recordings per output (inf where a rollout blew up)."""
+        errs = []
+        for sim, y, scale in zip(sims, self.y, self.scale, strict=True):
+            err = np.sqrt(np.mean((sim - y) ** 2, axis=1)) / scale
+            errs.append(np.where(np.all(np.isfinite(sim), axis=1), err, np.inf))
+        e = np.asarray(errs)
+        return {o: float(np.mean(e[:, j])) for j, o in enumerate(self.outputs)}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -682,16 +694,23 @@ class _Fit:
         r = np.asarray(self.residual(jnp.asarray(full), weights))
         return float(r @ r) if np.all(np.isfinite(r)) else float("inf")
 
-    def extra(self, ks: Sequence[int]) -> list[int]:
-        """The coefficients freed with candidates ``ks``: each one's own, and a block's time
-        constant after its gain."""
+    def _freed(self, ks: Sequence[int]) -> list[int]:
         out = []
         for k in ks:
             tau = self.sim.m.block(k)
             out += [k] if tau is None else [k, tau]
-        if len(out) > _SLOTS:
-            raise ValueError(f"at most {_SLOTS} coefficients beside the parameters")
         return out
+
+    def fits(self, ks: Sequence[int]) -> bool:
+        """Whether candidates ``ks`` fit in the compiled Jacobian's `_SLOTS`."""
+        return len(self._freed(ks)) <= _SLOTS
+
+    def extra(self, ks: Sequence[int]) -> list[int]:
+        """The coefficients freed with candidates ``ks``: each one's own, and a block's time
+        constant after its gain."""
+        if not self.fits(ks):
+            raise ValueError(f"at most {_SLOTS} coefficients beside the parameters")
+        return self._freed(ks)
 
     def jacobian(self, full: np.ndarray, ks: Sequence[int], weights: jax.Array):
         """Residual and Jacobian (the family's parameters, then the `extra` coefficients)."""
@@ -808,11 +827,10 @@ def diagnose_terminal(
     )
     machine = _Machine(fam, 2.0 * np.pi * config.frequency, measured)
     recs = [_recording(ds, outputs, measured) for ds in train]
-    sim = _Simulator(machine, recs, outputs, measured, config.substeps)
+    sim = _Simulator(machine, recs, outputs, config.substeps)
     held_sim = _Simulator(
-        machine, [_recording(ds, outputs, measured) for ds in held], outputs, measured,
-        config.substeps,
-    )  # fmt: skip
+        machine, [_recording(ds, outputs, measured) for ds in held], outputs, config.substeps
+    )
     n_b, n_c = len(fam.params), len(machine.cands)
     c0 = machine.c0()
     weights = jnp.ones(len(recs))
@@ -837,8 +855,7 @@ def diagnose_terminal(
     say(f"refitted {fam.name} to the output error: NRMSE {np.sqrt(sse_refit):.3g} (root sum)")
 
     def held_error(full: np.ndarray) -> dict[str, float]:
-        e = held_sim.nrmse(full[:n_b], full[n_b:])
-        return {o: float(np.mean(e[:, j])) for j, o in enumerate(outputs)}
+        return held_sim.nrmse(held_sim.outputs_of(full))
 
     # 3. forward selection: every candidate ranked by the score test, the best few refitted in
     # full, the one that removes the largest share of the error left added if that share
@@ -849,7 +866,7 @@ def diagnose_terminal(
     current, sse_now, held_now = refit, sse_refit, held_error(refit)
     stopped = ""
     for _ in range(config.max_terms):
-        pool = [k for k in range(n_c) if k not in chosen and _fits_slots(fit, [*chosen, k])]
+        pool = [k for k in range(n_c) if k not in chosen and fit.fits([*chosen, k])]
         if not pool:
             break
         scores = fit.score(current, chosen, pool, weights)
@@ -911,20 +928,13 @@ def diagnose_terminal(
     ses: dict[str, dict[str, float]] = {}
     rolls: dict[str, list[np.ndarray]] = {}
     for name, (full, ks) in models.items():
-        e = sim.nrmse(full[:n_b], full[n_b:])
-        errors["train"][name] = {o: float(np.mean(e[:, j])) for j, o in enumerate(outputs)}
-        errors["held_out"][name] = held_error(full)
-        labels, values = _labelled(machine, fam, full, ks)
-        se = fit.standard_errors(full, ks, weights)
-        params[name] = dict(zip(labels, values, strict=True))
-        ses[name] = dict(zip(labels, _value_errors(machine, fam, full, ks, se), strict=True))
-        runs = held_sim._simulate_jit(jnp.asarray(full[:n_b]), jnp.asarray(full[n_b:]))
-        rolls[name] = [np.asarray(y) for y in runs]
+        errors["train"][name] = sim.nrmse(sim.outputs_of(full))
+        rolls[name] = held_sim.outputs_of(full)
+        errors["held_out"][name] = held_sim.nrmse(rolls[name])
+        named = _named(machine, fam, full, ks, fit.standard_errors(full, ks, weights))
+        params[name] = {label: value for label, value, _ in named}
+        ses[name] = {label: se for label, _, se in named}
     cause = _verdict(steps, stopped, first, errors, outputs, machine, fam, config)
-    measured_y: list[np.ndarray] = [np.empty(0)] * held_sim.n_recordings
-    for idx, group in held_sim.groups:
-        for j, i in enumerate(idx):
-            measured_y[int(i)] = np.asarray(group["y"][j])
     return TerminalDiagnosis(
         family=fam.name,
         cause=cause,
@@ -937,7 +947,7 @@ def diagnose_terminal(
         held_out=held_text,
         wall_time_s=time.perf_counter() - started,
         rollouts=rolls,
-        measured=measured_y,
+        measured=list(held_sim.y),
         times=[np.asarray(ds.t) for ds in held],
     )
 
@@ -961,46 +971,23 @@ def _adding(c: TerminalCandidate) -> str:
     return f"adding {c.term} to the {_LABELS[c.equation]}"
 
 
-def _fits_slots(fit: _Fit, ks: Sequence[int]) -> bool:
-    try:
-        fit.extra(ks)
-    except ValueError:
-        return False
-    return True
-
-
-def _labelled(
-    machine: _Machine, family: Family, full: np.ndarray, ks: Sequence[int]
-) -> tuple[list[str], list[float]]:
-    """Names and values of a fit's columns: the family's parameters, then per candidate its
-    coefficient (``term in equation``, or a block's gain) and a block's time constant."""
-    n_b = len(family.params)
-    labels, values = list(family.params), [float(v) for v in full[:n_b]]
-    for k in ks:
-        eq, term = machine.cands[k]
-        if eq in _BLOCKS:
-            labels += [_BLOCKS[eq][2], _BLOCKS[eq][3]]
-            values += [float(full[n_b + k]), 1.0 / float(full[n_b + machine.tau[eq]])]
-        else:
-            labels.append(f"{term} in {eq}")
-            values.append(float(full[n_b + k]))
-    return labels, values
-
-
-def _value_errors(
+def _named(
     machine: _Machine, family: Family, full: np.ndarray, ks: Sequence[int], se: np.ndarray
-) -> list[float]:
-    """Standard errors in the order of `_labelled` (a time constant's from its inverse's)."""
+) -> list[tuple[str, float, float]]:
+    """Name, value and standard error of a fit's columns: the family's parameters, then per
+    candidate its coefficient (``term in equation``, or a block's gain) and a block's time
+    constant (from its inverse, which is fitted)."""
     n_b = len(family.params)
-    out = [float(s) for s in se[:n_b]]
+    out = [(n, float(full[i]), float(se[i])) for i, n in enumerate(family.params)]
     j = n_b
     for k in ks:
-        eq = machine.cands[k][0]
-        out.append(float(se[j]))
+        eq, term = machine.cands[k]
+        label = _BLOCKS[eq][2] if eq in _BLOCKS else f"{term} in {eq}"
+        out.append((label, float(full[n_b + k]), float(se[j])))
         j += 1
         if eq in _BLOCKS:
             inv = float(full[n_b + machine.tau[eq]])
-            out.append(float(se[j]) / inv**2)
+            out.append((_BLOCKS[eq][3], 1.0 / inv, float(se[j]) / inv**2))
             j += 1
     return out
 
@@ -1018,10 +1005,9 @@ def _step_summary(step: _Step, machine: _Machine, family: Family) -> str:
         )
     u = pick.equation
     drive, what, gain, tname, _ = _BLOCKS[u]
-    labels, values = _labelled(machine, family, step.full, step.ks)
-    errs = _value_errors(machine, family, step.full, step.ks, step.se)
-    value = dict(zip(labels, values, strict=True))
-    se = dict(zip(labels, errs, strict=True))
+    named = _named(machine, family, step.full, step.ks, step.se)
+    value = {label: v for label, v, _ in named}
+    se = {label: e for label, _, e in named}
     # standard errors above a tenth of the value: the data leave them loose
     loose = [n for n in (*family.params, gain) if se[n] > 0.1 * abs(value[n])]
     return (
