@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -276,11 +277,22 @@ class ModelSmoother:
         self.process = dict(zip(states, factors.tolist(), strict=True))
         self._q = jnp.asarray((factors * scale) ** 2)
 
-    def log_likelihood(self, ae_params: jax.Array, ae_variance: jax.Array) -> jax.Array:
+    @property
+    def recordings(self) -> list[tuple[Any, ...]]:
+        """The recordings as arrays (a pytree), one batch per recording length: what
+        :meth:`log_likelihood` takes as ``recordings`` inside a compiled function, so that they
+        enter it as an argument rather than as constants copied into every compiled program."""
+        return self._batches
+
+    def log_likelihood(
+        self, ae_params: jax.Array, ae_variance: jax.Array, recordings: Any = None
+    ) -> jax.Array:
         """The log-likelihood of all recordings (the filter's innovations) with the AE equations
-        at ``ae_params`` and error variances ``ae_variance``: traceable, differentiable."""
+        at ``ae_params`` and error variances ``ae_variance``: traceable, differentiable.
+        ``recordings``: :attr:`recordings` (the default), passed in by a caller that compiles."""
         total = jnp.zeros(())
-        for y, u, h, left, r in self._batches:  # recordings of one length: one vmapped scan
+        for y, u, h, left, r in self._batches if recordings is None else recordings:
+            # recordings of one length: one vmapped scan
             rr = jnp.concatenate(
                 [r, jnp.broadcast_to(ae_variance, (r.shape[0], *ae_variance.shape))], axis=1
             )

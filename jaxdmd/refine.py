@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -245,18 +246,22 @@ def refit_joint(
         """parameters and error variances from theta = (p, log(variance - floor))"""
         return theta[:n_p], jnp.asarray(floor) + jnp.exp(theta[n_p:])
 
-    def nll(theta: jax.Array) -> jax.Array:
-        return -smoother.log_likelihood(*unpack(theta))
+    # the recordings enter the compiled likelihood as its argument: as constants, every compiled
+    # program would hold its own copy of them (a quarter of a GB at 4 x 1e5 samples)
+    recordings = smoother.recordings
+
+    def nll(theta: jax.Array, recordings: Any) -> jax.Array:
+        return -smoother.log_likelihood(*unpack(theta), recordings)
 
     theta0 = jnp.asarray(np.concatenate([start, np.log(var0 - floor)]))
-    before = float(nll(theta0))
+    before = float(nll(theta0, recordings))
     solution = optx.minimise(
-        lambda theta, _: nll(theta), optx.BFGS(rtol=1e-8, atol=1e-8), theta0,
-        max_steps=max_steps, throw=False,
+        nll, optx.BFGS(rtol=1e-8, atol=1e-8), theta0, recordings, max_steps=max_steps,
+        throw=False,
     )  # fmt: skip
     theta = solution.value
     params, fitted = (np.asarray(x) for x in unpack(theta))
-    after = float(nll(theta))
+    after = float(nll(theta, recordings))
     steps = int(solution.stats["num_steps"])
     report: dict[str, object] = {"steps": steps, "nll_before": before, "nll_after": after}
     if not (np.all(np.isfinite(params)) and np.isfinite(after) and after < before):

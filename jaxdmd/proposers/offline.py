@@ -408,6 +408,16 @@ class OfflineConfig:
     blocks: tuple[str, ...] = ()
 
 
+def _shares(residual: np.ndarray, q: np.ndarray | None, phi: np.ndarray) -> np.ndarray:
+    """Share of ``residual`` each column of ``phi`` explains once the span of ``q`` (an
+    orthonormal basis, or None) is projected out of it."""
+    if q is not None:
+        phi = phi - q @ (q.T @ phi)
+    norms = np.einsum("ij,ij->j", phi, phi)
+    rr = float(residual @ residual) + 1e-300
+    return np.where(norms > 1e-12 * len(residual), (residual @ phi) ** 2 / (norms * rr), 0)
+
+
 class OfflineProposer:
     """The default proposer; built with the data it may look at (like an engineer at a plot)."""
 
@@ -448,6 +458,8 @@ class OfflineProposer:
         self.catalog = tuple(catalog)
         self._cache: dict[str, np.ndarray | None] = {}
         self._tiers: dict[tuple[Variable, ...], tuple[list[str], list[str]]] = {}
+        self._pools: dict[tuple[Variable, ...], list[str]] = {}
+        self._held_out: dict[tuple[int, tuple[str, ...]], float] = {}
         self._rated: dict[str, Rated] = {}
 
     @classmethod
@@ -496,8 +508,15 @@ class OfflineProposer:
         if key not in self._tiers:
             extra, rated = second_tier(variables, self.data, self.config.degree, self.config.blocks)
             self._rated.update(rated)
-            self._tiers[key] = (term_pool(variables, self.data), extra)
+            self._tiers[key] = (self.pool(variables), extra)
         return self._tiers[key]
+
+    def pool(self, variables: Sequence[Variable]) -> list[str]:
+        """:func:`term_pool` of these variables on the proposer's data, built once."""
+        key = tuple(variables)
+        if key not in self._pools:
+            self._pools[key] = term_pool(variables, self.data)
+        return self._pools[key]
 
     def design(self, terms: Sequence[str]) -> np.ndarray:
         cols = [self.column(t) for t in terms]
@@ -516,7 +535,14 @@ class OfflineProposer:
 
     def held_out(self, j: int, terms: Sequence[str]) -> float:
         """Leave-one-recording-out NMSE of equation j with these terms (training NMSE if the
-        data are one recording): the measure by which terms are admitted and dropped."""
+        data are one recording): the measure by which terms are admitted and dropped. Kept
+        once computed: the operators ask it of the same equation many times."""
+        key = (j, tuple(terms))
+        if key not in self._held_out:
+            self._held_out[key] = self._loro(j, terms)
+        return self._held_out[key]
+
+    def _loro(self, j: int, terms: Sequence[str]) -> float:
         if self.groups is None:
             return self.solve(j, terms)[2]
         y = self.targets[j]
@@ -530,20 +556,24 @@ class OfflineProposer:
             sse += float(np.sum((y[held] - x[held] @ coef) ** 2))
         return sse / len(y) / self.scale[j] ** 2
 
-    def explained(self, j: int, terms: Sequence[str], pool: Sequence[str]) -> np.ndarray:
-        """Share of equation j's residual each pool term explains beyond ``terms``."""
-        _, residual, _ = self.solve(j, terms)
+    def fitted(self, j: int, terms: Sequence[str]) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """Equation j fitted with ``terms``: its residual, an orthonormal basis of the terms'
+        columns (None without any) and its NMSE; what :meth:`explained` projects out."""
+        _, residual, loss = self.solve(j, terms)
+        x = self.design(terms)
+        return residual, np.linalg.qr(x)[0] if x.shape[1] else None, loss
+
+    def explained(
+        self, j: int, terms: Sequence[str], pool: Sequence[str],
+        fitted: tuple[np.ndarray, np.ndarray | None, float] | None = None,
+    ) -> np.ndarray:  # fmt: skip
+        """Share of equation j's residual each pool term explains beyond ``terms`` (``fitted``:
+        :meth:`fitted` of the same, where the caller has it)."""
+        residual, q, _ = self.fitted(j, terms) if fitted is None else fitted
         cand = [t for t in pool if self.column(t) is not None]
         if not cand:
             return np.zeros(0)
-        phi = self.design(cand)
-        x = self.design(terms)
-        if x.shape[1]:
-            q, _ = np.linalg.qr(x)
-            phi = phi - q @ (q.T @ phi)
-        norms = np.einsum("ij,ij->j", phi, phi)
-        rr = float(residual @ residual) + 1e-300
-        share = np.where(norms > 1e-12 * len(residual), (residual @ phi) ** 2 / (norms * rr), 0)
+        share = _shares(residual, q, self.design(cand))
         out = np.zeros(len(pool))
         index = {t: i for i, t in enumerate(cand)}
         for i, t in enumerate(pool):
@@ -793,7 +823,7 @@ class OfflineProposer:
         if not outside:
             return []
         base = (*contract.states, *contract.library)
-        base_pool = set(term_pool(base, self.data))
+        base_pool = set(self.pool(base))
         # candidates: each outside variable, and each boundary phasor (a magnitude and an angle,
         # both outside): its projections only exist once both are in, so it is judged as one
         groups: list[tuple[Variable, ...]] = [(v,) for v in outside]
@@ -802,16 +832,20 @@ class OfflineProposer:
         groups += [(m, a) for m in magnitudes for a in angles]
         # for every equation, the candidate whose best term explains most of its error
         per_equation: dict[int, tuple[float, tuple[Variable, ...]]] = {}
+        # each equation's fit with its own terms, shared by every candidate
+        fits = [
+            self.fitted(j, list(eq.terms) if eq.opaque is None else ["1"])
+            for j, eq in enumerate(equations)
+        ]
         for group in groups:
-            pool = [t for t in term_pool((*base, *group), self.data) if t not in base_pool]
+            pool = [t for t in self.pool((*base, *group)) if t not in base_pool]
             if not pool:  # a variable with no first-tier term (a time): judged by its second
                 extra, rated = second_tier((*base, *group), self.data, self.config.degree)
                 names = {v.name for v in group}
                 pool = [t for t in extra if t in rated and rated[t].variable in names]
-            for j, eq in enumerate(equations):
-                terms = list(eq.terms) if eq.opaque is None else ["1"]
-                _, _, loss = self.solve(j, terms)
-                share = float(self.explained(j, terms, pool).max(initial=0.0)) * min(loss, 1.0)
+            phi = self.design([t for t in pool if self.column(t) is not None])
+            for j, (residual, q, loss) in enumerate(fits):
+                share = float(_shares(residual, q, phi).max(initial=0.0)) * min(loss, 1.0)
                 if settled(share) > settled(per_equation.get(j, (0.0, group))[0]):
                     per_equation[j] = (share, group)
         scores = sorted(
