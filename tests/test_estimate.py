@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import model_smoother
+from jaxdmd.prompts import Contract, Variable
 from jaxdmd.refine import smoothed_states
 from jaxdmd.skeleton import compile_skeleton
 
@@ -130,6 +135,50 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     assert abs(refit.params[0] - 2.0) < abs(plain - 2.0) / 5
     again, _ = refit_joint(de, dataclasses.replace(start, params=(2.0,)), recordings, max_steps=300)
     assert again.params[0] == pytest.approx(2.0, rel=0.002)
+
+
+def test_the_joint_likelihood_compiles_without_a_copy_of_the_recordings():
+    """The joint refit passes the recordings to its compiled likelihood as an argument: the
+    compiled program then holds no constant the size of a recording (closed over, they were
+    copied into every compiled program: a quarter of a GB at 4 x 1e5 samples), and the value
+    is the one computed from the recordings the smoother holds."""
+    import re
+
+    from jaxdmd.estimate import ModelSmoother
+    from jaxdmd.search import Equations
+
+    recordings, truth = _recordings(n=2, noise=0.01)
+    recordings = [
+        ds.with_channels({"y": 2.0 * np.sin(c["a"])}, {"y": "algebraic"})
+        for ds, c in zip(recordings, truth, strict=True)
+    ]
+    states = (Variable("a", "state"), Variable("w", "state"))
+    de = Equations(
+        Contract(loop="DE", targets=("a", "w"), states=states,
+                 library=(Variable("u", "input"),), function_name="equation"),
+        MODEL, (50.0, 0.02), (0.0, 0.0), 0.0,
+    )  # fmt: skip
+    ae = Equations(
+        Contract(loop="AE", targets=("y",), states=states, function_name="algebraic"),
+        "def algebraic(a, w, p):\n    y_ = p[0] * jnp.sin(a)\n    return y_\n", (2.0,),
+        (0.0,), 0.0,
+    )  # fmt: skip
+    smoother = ModelSmoother(
+        de.skeleton(), de.params, ("a", "w"), recordings, [{"a": 1e-4, "w": 1e-4}] * 2,
+        ae=ae.skeleton(), targets=("y",), process={"a": 1.0, "w": 1.0},
+    )  # fmt: skip
+    p, v = jnp.asarray([2.0]), jnp.asarray([1e-4])
+
+    def largest_constant(lowered: Any) -> int:  # characters of its hex text: 16 per float64
+        return max((len(c) for c in re.findall(r"dense<[^>]*>", lowered.as_text())), default=0)
+
+    n = recordings[0].n_samples
+    compiled = jax.jit(smoother.log_likelihood)
+    assert largest_constant(compiled.lower(p, v, smoother.recordings)) < n
+    closed_over = jax.jit(lambda p, v: smoother.log_likelihood(p, v))
+    assert largest_constant(closed_over.lower(p, v)) > 16 * n  # what the test would see
+    value = float(compiled(p, v, smoother.recordings))
+    assert value == pytest.approx(float(smoother.log_likelihood(p, v)), rel=1e-12)
 
 
 def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():

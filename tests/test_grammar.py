@@ -13,8 +13,8 @@ from scipy.integrate import solve_ivp
 import jaxdmd
 from jaxdmd.data import Dataset
 from jaxdmd.pipeline import DiscoveryConfig
-from jaxdmd.prompts import Variable
-from jaxdmd.proposers.offline import OfflineProposer, second_tier
+from jaxdmd.prompts import Contract, Variable
+from jaxdmd.proposers.offline import Equation, OfflineProposer, second_tier, term_pool
 from jaxdmd.search import SearchConfig
 
 # noise-free data with exact derivatives: the score threshold is the arithmetic's, not noise's
@@ -126,6 +126,29 @@ def test_the_second_tier_waits_for_the_first():
     assert rates[near] != pytest.approx(1.5, rel=0.1)  # the grid's nearest is off ...
     refined = proposer._refine(0, ["y"], near)  # ... and the rate is fitted
     assert float(re.findall(r"jnp\.exp\((\S+) \* u\)", refined)[0]) == pytest.approx(1.5)
+
+
+def test_the_variable_an_equation_lacks_is_requested_for_that_equation():
+    """y's rate needs z, which is in the catalog but not in the library; x's rate needs nothing
+    more. z is requested, for y, with the share of y's error that its best term explains (as
+    ``explained`` ranks terms for the operators); w, which explains nothing, is not."""
+    rng = np.random.default_rng(1)
+    x, y, z, w = (rng.uniform(-1, 1, 3000) for _ in range(4))
+    targets = np.stack([-1.0 * x + 0.5 * y, -2.0 * y + 0.8 * z])
+    states = (Variable("x", "state", ""), Variable("y", "state", ""))
+    catalog = (Variable("z", "input", ""), Variable("w", "input", ""))
+    proposer = OfflineProposer(
+        {"x": x, "y": y, "z": z, "w": w}, targets, catalog, groups=np.arange(3000) % 3
+    )
+    contract = Contract(loop="DE", targets=("x", "y"), states=states)
+    requests = proposer.variable_requests(contract, [Equation(("x", "y")), Equation(("y",))])
+    assert [r["name"] for r in requests] == ["z"]
+    base = set(term_pool(states, proposer.data))
+    pool = [t for t in term_pool((*states, catalog[0]), proposer.data) if t not in base]
+    loss = proposer.solve(1, ["y"])[2]
+    share = float(proposer.explained(1, ["y"], pool).max()) * min(loss, 1.0)
+    assert share > 0.1  # z carries 0.64 / 4.64 of the variance of y's rate
+    assert requests[0]["reason"] == f"explains {share:.1%} of the error of y"
 
 
 def test_the_second_tier_respects_units():
