@@ -13,6 +13,7 @@ from jaxdmd.data import Dataset
 from jaxdmd.estimate import model_smoother
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.refine import smoothed_states
+from jaxdmd.search import Equations
 from jaxdmd.skeleton import compile_skeleton
 
 MODEL = """
@@ -97,19 +98,13 @@ def test_model_smoother_with_a_wrong_rate_lets_the_measurements_in():
     assert rms(wrong, "w") < 1.2 * rms(generic, "w")
 
 
-def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
-    """y = 2 sin(a), y measured clean, the angle a with noise of 1 % of its range (which
-    wraps the sine several times): least squares on the smoothed angle misses the coefficient;
-    the maximum-likelihood refit with the states unknown (the DE model as process model, y
-    through its equation as a measurement) recovers it, and it must not move it away when it
-    starts from the truth."""
-    import dataclasses
+SINE = "def algebraic(a, w, p):\n    y_ = p[0] * jnp.sin(a)\n    return y_\n"
 
-    from jaxdmd.prompts import Contract, Variable
-    from jaxdmd.refine import refit_joint
-    from jaxdmd.search import Equations
 
-    recordings, truth = _recordings(n=2, noise=0.03)
+def _sine_measured(noise: float) -> tuple[list[Dataset], Equations, Contract]:
+    """Two recordings of the test system with y = 2 sin(a) measured clean, the true state
+    equations, and the contract of y's algebraic equation (:data:`SINE`)."""
+    recordings, truth = _recordings(n=2, noise=noise)
     recordings = [
         ds.with_channels({"y": 2.0 * np.sin(c["a"])}, {"y": "algebraic"})
         for ds, c in zip(recordings, truth, strict=True)
@@ -120,15 +115,27 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
                  library=(Variable("u", "input"),), function_name="equation"),
         MODEL, (50.0, 0.02), (0.0, 0.0), 0.0,
     )  # fmt: skip
-    ae_source = "def algebraic(a, w, p):\n    y_ = p[0] * jnp.sin(a)\n    return y_\n"
-    contract = Contract(loop="AE", targets=("y",), states=states, library=(),
-                        function_name="algebraic")  # fmt: skip
+    contract = Contract(loop="AE", targets=("y",), states=states, function_name="algebraic")
+    return recordings, de, contract
+
+
+def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
+    """y = 2 sin(a), y measured clean, the angle a with noise of 1 % of its range (which
+    wraps the sine several times): least squares on the smoothed angle misses the coefficient;
+    the maximum-likelihood refit with the states unknown (the DE model as process model, y
+    through its equation as a measurement) recovers it, and it must not move it away when it
+    starts from the truth."""
+    import dataclasses
+
+    from jaxdmd.refine import refit_joint
+
+    recordings, de, contract = _sine_measured(noise=0.03)
     generic = smoothed_states(recordings, ["a", "w"])
     design = np.concatenate([np.sin(np.asarray(e.dataset["a"])) for e in generic])
     target = np.concatenate([np.asarray(e.dataset["y"]) for e in generic])
     plain = float(design @ target / (design @ design))
     assert abs(plain - 2.0) > 0.01  # the attenuation the test is about
-    start = Equations(contract, ae_source, (plain,), (0.0,), 0.0)
+    start = Equations(contract, SINE, (plain,), (0.0,), 0.0)
     refit, report = refit_joint(de, start, recordings, max_steps=300)
     assert "kept" not in report and report["nll_after"] < report["nll_before"]
     assert refit.params[0] == pytest.approx(2.0, rel=0.002)
@@ -145,24 +152,9 @@ def test_the_joint_likelihood_compiles_without_a_copy_of_the_recordings():
     import re
 
     from jaxdmd.estimate import ModelSmoother
-    from jaxdmd.search import Equations
 
-    recordings, truth = _recordings(n=2, noise=0.01)
-    recordings = [
-        ds.with_channels({"y": 2.0 * np.sin(c["a"])}, {"y": "algebraic"})
-        for ds, c in zip(recordings, truth, strict=True)
-    ]
-    states = (Variable("a", "state"), Variable("w", "state"))
-    de = Equations(
-        Contract(loop="DE", targets=("a", "w"), states=states,
-                 library=(Variable("u", "input"),), function_name="equation"),
-        MODEL, (50.0, 0.02), (0.0, 0.0), 0.0,
-    )  # fmt: skip
-    ae = Equations(
-        Contract(loop="AE", targets=("y",), states=states, function_name="algebraic"),
-        "def algebraic(a, w, p):\n    y_ = p[0] * jnp.sin(a)\n    return y_\n", (2.0,),
-        (0.0,), 0.0,
-    )  # fmt: skip
+    recordings, de, contract = _sine_measured(noise=0.01)
+    ae = Equations(contract, SINE, (2.0,), (0.0,), 0.0)
     smoother = ModelSmoother(
         de.skeleton(), de.params, ("a", "w"), recordings, [{"a": 1e-4, "w": 1e-4}] * 2,
         ae=ae.skeleton(), targets=("y",), process={"a": 1.0, "w": 1.0},
@@ -187,9 +179,7 @@ def test_a_model_that_is_not_finite_falls_back_to_the_generic_smoother():
     nothing stops. (An equation that merely explodes does not get here: the filter then
     follows the measurements.)"""
     from jaxdmd.pipeline import DiscoveryConfig, _ae_regressors
-    from jaxdmd.prompts import Contract, Variable
     from jaxdmd.report import Progress
-    from jaxdmd.search import Equations
 
     recordings, _ = _recordings(n=2)
     source = (
@@ -214,9 +204,6 @@ def test_the_likelihood_without_the_smoother_is_the_filters_with_its_gradient():
     """The joint refit maximises the filter's likelihood computed alone (the smoother left out,
     each step computed again for the gradient instead of kept): the same value and gradient
     as the likelihood that the full filter-smoother returns."""
-    import jax
-    import jax.numpy as jnp
-
     from jaxdmd.estimate import _filter_smoother, _log_likelihood, _transition
 
     recordings, _ = _recordings(n=1)
