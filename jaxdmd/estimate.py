@@ -151,7 +151,8 @@ def _log_likelihood(step, observe, x0, p0, y, u, h, left, q, r):
     each step is computed again in the backward pass (``jax.checkpoint``) instead of keeping its
     intermediate values for every sample, so the gradient's memory is the filter's state per
     sample (the joint refit's own memory at four recordings of 1e5 samples: about 4.3 GB
-    before, 0.5 GB now; docs/benchmarks.md)."""
+    before, 0.5 GB after, 0.18 GB with the recordings an argument of the compiled likelihood,
+    :attr:`ModelSmoother.recordings`; docs/benchmarks.md)."""
     update, forward = _filter_steps(step, observe, q, r)
     m0, pm0, ll0 = update(x0, p0, y[0], jax.tree.map(lambda v: v[0], u))
 
