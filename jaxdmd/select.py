@@ -94,6 +94,9 @@ __all__ = [
 
 # terms of a line built from the other algebraic variables (:func:`_composed_lines`)
 COMPOSED_TERMS = 4
+# a held-out NMSE below this is round-off: the line is exact, and exact lines tie (which one
+# fits to 1e-30 rather than 1e-31 depends on the machine's last bits, not on the data)
+EXACT_NMSE = 1e-20
 
 
 @dataclass(frozen=True)
@@ -1027,7 +1030,7 @@ def _simpler_and_fits(
     if _complexity(new, states) >= _complexity(old, states):
         return False
     losses = cross_validated_losses(state, j, [ln.renumbered(new), ln.renumbered(old)])
-    return bool(losses[0] <= losses[1] * (1 + config.tolerance))
+    return bool(losses[0] <= max(losses[1] * (1 + config.tolerance), EXACT_NMSE))
 
 
 def _by_held_out_fit(
@@ -1053,7 +1056,7 @@ def _by_held_out_fit(
         losses = cross_validated_losses(held, j, [ln.renumbered(c) for c in options])
         if not np.isfinite(np.min(losses)):
             continue
-        bound = float(np.min(losses)) * (1 + config.tolerance)
+        bound = max(float(np.min(losses)) * (1 + config.tolerance), EXACT_NMSE)
         eligible = [i for i, loss in enumerate(losses) if loss <= bound]
         best = min(eligible, key=lambda i: (_complexity(options[i], states), settled(losses[i])))
         report["equations"][target] = {  # type: ignore[index]
