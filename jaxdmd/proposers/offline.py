@@ -569,10 +569,10 @@ class OfflineProposer:
     ) -> np.ndarray:  # fmt: skip
         """Share of equation j's residual each pool term explains beyond ``terms`` (``fitted``:
         :meth:`fitted` of the same, where the caller has it)."""
-        residual, q, _ = self.fitted(j, terms) if fitted is None else fitted
         cand = [t for t in pool if self.column(t) is not None]
         if not cand:
             return np.zeros(0)
+        residual, q, _ = self.fitted(j, terms) if fitted is None else fitted
         share = _shares(residual, q, self.design(cand))
         out = np.zeros(len(pool))
         index = {t: i for i, t in enumerate(cand)}
