@@ -556,8 +556,8 @@ def pointwise_numpy(program: Program, args: Sequence[np.ndarray], p: np.ndarray)
         # a parameter slice of [1, P, B] is [1, 1, B]: it broadcasts against a row's [1, B]
         values = _value_function(program)(rows, p.T[None])
     out = np.empty((b, program.n_outputs))
-    for j, v in enumerate(values):
-        out[:, j] = np.broadcast_to(v, (1, 1, b)).reshape(b)
+    for j, v in enumerate(values):  # v is [1, 1, B] or [1, B], or one number for every point
+        out[:, j] = np.reshape(v, -1)
     return out
 
 
@@ -643,9 +643,11 @@ def _value_function(program: Program) -> Callable[[list[np.ndarray], np.ndarray]
     but as one straight-line Python function per program, since a host rollout evaluates small
     programs at every step and an interpreter loop's dispatch costs more than the arithmetic.
     The function's text is made here from register numbers and names of this module's own: the
-    rules and constants are bound by name in its namespace, nothing of a skeleton's text is in
-    it (so what runs is the program's instructions, as in :func:`run_numpy`)."""
+    rules and constants are bound by name in its namespace (the five arithmetic operators
+    written out, :data:`_INFIX`), nothing of a skeleton's text is in it (so what runs is the
+    program's instructions, as in :func:`run_numpy`)."""
     namespace: dict[str, Any] = {"np": np, "__builtins__": {}}
+    head: dict[str, str] = {}  # a row's or a parameter's view, made once per call, not per use
     body = []
     for j, (rule, operands, imm, dst) in enumerate(_host_code(program)):
         xs = []
@@ -653,19 +655,27 @@ def _value_function(program: Program) -> Callable[[list[np.ndarray], np.ndarray]
             if kind == 0:
                 xs.append(f"r{int(index)}")
             elif kind == 1:
-                xs.append(f"rows[{int(index)}][None, :]")
+                i = int(index)
+                head.setdefault(f"v{i}", f"rows[{i}][None, :]")
+                xs.append(f"v{i}")
             elif kind == 2:
-                xs.append(f"p[:, {int(index)}:{int(index) + 1}]")
+                i = int(index)
+                head.setdefault(f"q{i}", f"p[:, {i}:{i + 1}]")
+                xs.append(f"q{i}")
             else:
                 namespace[f"c{j}_{m}"] = value
                 xs.append(f"c{j}_{m}")
+        infix = _INFIX.get(id(rule))
         if rule is None:
             body.append(f"    r{int(dst)} = {xs[0]}")
+        elif infix is not None:  # the rule's own expression, written out: the same operation
+            body.append(f"    r{int(dst)} = " + infix.format(*xs))
         else:
             namespace[f"f{j}"], namespace[f"i{j}"] = rule[0], imm
             body.append(f"    r{int(dst)} = f{j}(np, {', '.join(xs)}, i{j})")
     outputs = "".join(f"r{int(r)}, " for r in program.outputs.tolist())
-    text = "\n".join(["def values(rows, p):", *body, f"    return ({outputs})"])
+    views = [f"    {name} = {view}" for name, view in head.items()]
+    text = "\n".join(["def values(rows, p):", *views, *body, f"    return ({outputs})"])
     exec(compile(text, "<jaxdmd.interp program>", "exec"), namespace)
     return namespace["values"]
 
@@ -786,6 +796,16 @@ RULES: dict[str, _Rule] = {
     "eq": _compare(lambda xp, x, y: x == y),
     "ne": _compare(lambda xp, x, y: x != y),
     "and": _compare(lambda xp, x, y: (x != 0) & (y != 0)),
+}
+
+# rules that are one arithmetic operator, written out in :func:`_value_function`'s text (the
+# rule's own expression on the same operands: the same values to the bit, without a call)
+_INFIX = {
+    id(RULES["neg"]): "-{0}",
+    id(RULES["add"]): "{0} + {1}",
+    id(RULES["sub"]): "{0} - {1}",
+    id(RULES["mul"]): "{0} * {1}",
+    id(RULES["div"]): "{0} / {1}",
 }
 
 

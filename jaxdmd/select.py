@@ -194,7 +194,11 @@ def simulate_host(
     ae_targets: tuple[str, ...] = () if algebraic is None else tuple(algebraic[1])
     needed = [*program.arguments, *(algebraic[0].arguments if algebraic else ())]
     played_names = sorted({a for a in needed if a not in targets and a not in ae_targets})
-    played = [_played(ds, played_names) for ds in recordings]
+    once: dict[int, _Played] = {}  # a recording given for several rows is read once
+    for ds in recordings:
+        if id(ds) not in once:
+            once[id(ds)] = _played(ds, played_names)
+    played = [once[id(ds)] for ds in recordings]
     left = {a: np.stack([p.left[a] for p in played]) for a in played_names}  # [B, n - 1]
     right = {a: np.stack([p.right[a] for p in played]) for a in played_names}
     channels = targets if channels is None else tuple(channels)
@@ -208,10 +212,19 @@ def simulate_host(
     params = np.asarray(params, dtype=float)
     starts = None if windows is None else np.asarray([w[0] for w in windows])
 
-    def field(x: np.ndarray, k: int, w: float) -> np.ndarray:
+    # the played-in values at each substep's ends, for every interval at once: [B, n - 1] per
+    # name and weight (the same arithmetic as one interval at a time, without it at every stage)
+    weights = [m / substeps for m in range(substeps + 1)]
+    at: list[dict[str, np.ndarray]] = [{} for _ in weights]
+    for a in played_names:  # one name's ends at a time: no second copy of every channel
+        x0, x1 = left.pop(a), right.pop(a)
+        for m, w in enumerate(weights):
+            at[m][a] = (1 - w) * x0 + w * x1
+
+    def field(x: np.ndarray, k: int, m: int) -> np.ndarray:
         values = {a: x[:, i] for a, i in index.items()}
-        for a in played_names:
-            values[a] = (1 - w) * left[a][:, k] + w * right[a][:, k]
+        for a, v in at[m].items():
+            values[a] = v[:, k]
         if algebraic is not None:
             ae_program, _, ae_params = algebraic
             closed = _evaluate(ae_program, [values[a] for a in ae_program.arguments], ae_params)
@@ -222,9 +235,8 @@ def simulate_host(
         for k in range(n - 1):
             h = (t[k + 1] - t[k]) / substeps
             for m in range(substeps):  # Heun's method (trapezoidal predictor-corrector)
-                w0, w1 = m / substeps, (m + 1) / substeps
-                k1 = field(x, k, w0)
-                k2 = field(x + h * k1, k, w1)
+                k1 = field(x, k, m)
+                k2 = field(x + h * k1, k, m + 1)
                 x = x + 0.5 * h * (k1 + k2)
             if starts is not None:  # a row whose block starts later holds the recording
                 hold = k + 1 <= starts
