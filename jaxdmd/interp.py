@@ -551,14 +551,32 @@ def pointwise_numpy(program: Program, args: Sequence[np.ndarray], p: np.ndarray)
     product (the same rules on the same numbers, so the same values to the bit)."""
     p = np.atleast_2d(np.asarray(p, dtype=np.float64))
     b = p.shape[0]
-    rows = [np.asarray(x, dtype=np.float64) for x in program.feature_values(args)]
     with np.errstate(all="ignore"):
+        rows = _feature_rows(program, args, np.shape(args[0])[0] if len(args) else b)
         # a parameter slice of [1, P, B] is [1, 1, B]: it broadcasts against a row's [1, B]
         values = _value_function(program)(rows, p.T[None])
     out = np.empty((b, program.n_outputs))
     for j, v in enumerate(values):  # v is [1, 1, B] or [1, B], or one number for every point
         out[:, j] = np.reshape(v, -1)
     return out
+
+
+def _feature_rows(program: Program, args: Sequence[np.ndarray], n: int) -> list[np.ndarray]:
+    """The rows of :meth:`Program.feature_values` as a list of ``[n]`` arrays, without packing
+    them into one array and out again (the same values: the features' program on the same
+    arguments). Call inside ``np.errstate(all="ignore")``."""
+    if program.features is None:
+        return []
+    values = _value_function(program.features)(
+        [np.asarray(x, dtype=np.float64) for x in args], _NO_PARAMS
+    )
+    return [
+        v[0] if np.shape(v) == (1, n) else np.broadcast_to(v, (1, n))[0].astype(np.float64)
+        for v in values
+    ]
+
+
+_NO_PARAMS = np.zeros((1, 1))
 
 
 def run_numpy(
