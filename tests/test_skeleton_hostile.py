@@ -21,7 +21,6 @@ import contextlib
 import math
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -50,10 +49,9 @@ SENTINEL = Path(os.environ.get("TMPDIR", "/tmp")) / f"jaxdmd-skeleton-sentinel-{
 class Watch:
     """Record calls of fire() and of the builtins that can run or reach code, while active.
 
-    The builtins are the process's: a call from another thread (a test runner's own, as
-    pytest-xdist's channel to its worker) is not the checked code's and is not recorded (the
-    skeleton's checker and compiler start no thread). fire() and os.system are recorded from
-    any thread."""
+    The import system's own calls are not recorded: a module imported lazily for the first time
+    in the process (which depends on the tests run before, and on the worker under
+    pytest-xdist) is executed by ``importlib`` with ``exec``, from a frozen frame."""
 
     def __init__(self) -> None:
         self.events: list[str] = []
@@ -64,19 +62,18 @@ class Watch:
         self._saved = dict(real)
         self._saved["system"] = os.system
         events = self.events
-        owner = threading.get_ident()
 
-        def here() -> bool:
-            return threading.get_ident() == owner
+        def importing() -> bool:  # called by the import system (frozen importlib)
+            return sys._getframe(2).f_code.co_filename.startswith("<frozen ")
 
         def spy_compile(source, filename, mode, flags=0, *args, **kwargs):
-            if not flags & ast.PyCF_ONLY_AST and here():  # ast.parse is fine; code is not
+            if not flags & ast.PyCF_ONLY_AST and not importing():  # ast.parse is fine
                 events.append(f"compile {filename}")
             return real["compile"](source, filename, mode, flags, *args, **kwargs)
 
         def spy(name: str):
             def wrapper(*args, **kwargs):
-                if here():
+                if not importing():
                     events.append(name)
                 return real[name](*args, **kwargs)
 
@@ -89,7 +86,8 @@ class Watch:
         def spy_import(name, *args, **kwargs):
             # the standard library imports lazily (ast.walk imports collections on every call);
             # an import from code that was compiled from text has a file name like <string>
-            if sys._getframe(1).f_code.co_filename.startswith("<") and here():
+            caller = sys._getframe(1).f_code.co_filename
+            if caller.startswith("<") and not caller.startswith("<frozen "):
                 events.append(f"import {name}")
             return real["__import__"](name, *args, **kwargs)
 
