@@ -561,6 +561,9 @@ def pointwise_numpy(program: Program, args: Sequence[np.ndarray], p: np.ndarray)
     return out
 
 
+_NO_PARAMS = np.zeros((1, 1))  # the features' program reads no parameter
+
+
 def _feature_rows(program: Program, args: Sequence[np.ndarray], n: int) -> list[np.ndarray]:
     """The rows of :meth:`Program.feature_values` as a list of ``[n]`` arrays, without packing
     them into one array and out again (the same values: the features' program on the same
@@ -574,9 +577,6 @@ def _feature_rows(program: Program, args: Sequence[np.ndarray], n: int) -> list[
         v[0] if np.shape(v) == (1, n) else np.broadcast_to(v, (1, n))[0].astype(np.float64)
         for v in values
     ]
-
-
-_NO_PARAMS = np.zeros((1, 1))
 
 
 def run_numpy(
