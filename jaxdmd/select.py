@@ -199,8 +199,6 @@ def simulate_host(
         if id(ds) not in once:
             once[id(ds)] = _played(ds, played_names)
     played = [once[id(ds)] for ds in recordings]
-    left = {a: np.stack([p.left[a] for p in played]) for a in played_names}  # [B, n - 1]
-    right = {a: np.stack([p.right[a] for p in played]) for a in played_names}
     channels = targets if channels is None else tuple(channels)
     measured = np.stack([[np.asarray(ds[c], dtype=float) for c in channels] for ds in recordings])
     bound = blowup * (1.0 + np.max(np.abs(measured), axis=2))  # [B, S]
@@ -216,8 +214,9 @@ def simulate_host(
     # name and weight (the same arithmetic as one interval at a time, without it at every stage)
     weights = [m / substeps for m in range(substeps + 1)]
     at: list[dict[str, np.ndarray]] = [{} for _ in weights]
-    for a in played_names:  # one name's ends at a time: no second copy of every channel
-        x0, x1 = left.pop(a), right.pop(a)
+    for a in played_names:
+        x0 = np.stack([p.left[a] for p in played])  # [B, n - 1]
+        x1 = np.stack([p.right[a] for p in played])
         for m, w in enumerate(weights):
             at[m][a] = (1 - w) * x0 + w * x1
 
