@@ -563,16 +563,12 @@ class OfflineProposer:
         x = self.design(terms)
         return residual, np.linalg.qr(x)[0] if x.shape[1] else None, loss
 
-    def explained(
-        self, j: int, terms: Sequence[str], pool: Sequence[str],
-        fitted: tuple[np.ndarray, np.ndarray | None, float] | None = None,
-    ) -> np.ndarray:  # fmt: skip
-        """Share of equation j's residual each pool term explains beyond ``terms`` (``fitted``:
-        :meth:`fitted` of the same, where the caller has it)."""
+    def explained(self, j: int, terms: Sequence[str], pool: Sequence[str]) -> np.ndarray:
+        """Share of equation j's residual each pool term explains beyond ``terms``."""
         cand = [t for t in pool if self.column(t) is not None]
         if not cand:
             return np.zeros(0)
-        residual, q, _ = self.fitted(j, terms) if fitted is None else fitted
+        residual, q, _ = self.fitted(j, terms)
         share = _shares(residual, q, self.design(cand))
         out = np.zeros(len(pool))
         index = {t: i for i, t in enumerate(cand)}
