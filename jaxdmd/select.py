@@ -179,26 +179,34 @@ def simulate_host(
     played in (a DAE rollout).
 
     ``params`` is ``[B, P]``, one row per recording (``B == len(recordings)``; the recordings
-    must share their time grid and events). ``windows`` (one ``(start, stop)`` sample range
-    per row) starts row ``b``'s rollout at sample ``start`` from the recording's states there
-    (a held-out time block, :func:`time_blocks`): before it the row holds the recorded states;
-    only the samples in the window are meant to be scored (:func:`simulation_error`). Returns
-    the simulated targets ``[B, S, n]`` (NaN from the first sample a rollout diverged at).
+    must share their time grid and events; one recording may be given for several rows, as
+    for candidates simulated side by side, and is then interpolated once). ``windows`` (one
+    ``(start, stop)`` sample range per row) starts row ``b``'s rollout at sample ``start`` from
+    the recording's states there (a held-out time block, :func:`time_blocks`): before it the
+    row holds the recorded states; only the samples in the window are meant to be scored
+    (:func:`simulation_error`). Returns the simulated targets ``[B, S, n]`` (NaN from the first
+    sample a rollout diverged at).
     """
     targets = tuple(targets)
     first = recordings[0]
-    t = np.asarray(first.t, dtype=float)
-    for ds in recordings[1:]:
-        if ds.n_samples != first.n_samples or not np.array_equal(np.asarray(ds.t), t):
-            raise ValueError("simulate_host: the recordings must share their time grid")
     ae_targets: tuple[str, ...] = () if algebraic is None else tuple(algebraic[1])
     needed = [*program.arguments, *(algebraic[0].arguments if algebraic else ())]
     played_names = sorted({a for a in needed if a not in targets and a not in ae_targets})
-    once: dict[int, _Played] = {}  # a recording given for several rows is read once
+    # a recording given for several rows (candidates side by side) is read and interpolated
+    # once; each row reads its recording's values
+    where: dict[int, int] = {}  # id of a recording -> its index among the distinct ones
+    distinct: list[Dataset] = []
     for ds in recordings:
-        if id(ds) not in once:
-            once[id(ds)] = _played(ds, played_names)
-    played = [once[id(ds)] for ds in recordings]
+        if id(ds) not in where:
+            where[id(ds)] = len(distinct)
+            distinct.append(ds)
+    t = np.asarray(first.t, dtype=float)
+    for ds in distinct[1:]:
+        if ds.n_samples != first.n_samples or not np.array_equal(np.asarray(ds.t), t):
+            raise ValueError("simulate_host: the recordings must share their time grid")
+    played = [_played(ds, played_names) for ds in distinct]
+    rows = np.asarray([where[id(ds)] for ds in recordings])
+    gather = None if len(distinct) == len(recordings) else rows
     channels = targets if channels is None else tuple(channels)
     measured = np.stack([[np.asarray(ds[c], dtype=float) for c in channels] for ds in recordings])
     bound = blowup * (1.0 + np.max(np.abs(measured), axis=2))  # [B, S]
@@ -210,20 +218,21 @@ def simulate_host(
     params = np.asarray(params, dtype=float)
     starts = None if windows is None else np.asarray([w[0] for w in windows])
 
-    # the played-in values at each substep's ends, for every interval at once: [B, n - 1] per
-    # name and weight (the same arithmetic as one interval at a time, without it at every stage)
+    # the played-in values at each substep's ends, for every interval at once: [n - 1, R] per
+    # name and weight, R the distinct recordings (the same arithmetic as one interval at a
+    # time, without it at every stage)
     weights = [m / substeps for m in range(substeps + 1)]
     at: list[dict[str, np.ndarray]] = [{} for _ in weights]
     for a in played_names:
-        x0 = np.stack([p.left[a] for p in played])  # [B, n - 1]
-        x1 = np.stack([p.right[a] for p in played])
+        x0 = np.stack([p.left[a] for p in played], axis=1)  # [n - 1, R]
+        x1 = np.stack([p.right[a] for p in played], axis=1)
         for m, w in enumerate(weights):
             at[m][a] = (1 - w) * x0 + w * x1
 
     def field(x: np.ndarray, k: int, m: int) -> np.ndarray:
         values = {a: x[:, i] for a, i in index.items()}
         for a, v in at[m].items():
-            values[a] = v[:, k]
+            values[a] = v[k] if gather is None else v[k][gather]
         if algebraic is not None:
             ae_program, _, ae_params = algebraic
             closed = _evaluate(ae_program, [values[a] for a in ae_program.arguments], ae_params)
@@ -707,13 +716,36 @@ def _single_errors(
     """Each line's simulation error, its equation's state integrated alone, left-out fits
     (one recording per fold; ``windows``: each fold's held-out time block, :class:`_Holdout`).
 
-    The lines are simulated side by side: one program whose output i is line i with the state
-    renamed to its own copy, so one evaluation per step serves every candidate."""
+    The lines are simulated side by side: those that are sums of one-parameter terms as rows
+    of one batch (:func:`_side_by_side`), any other in one program whose output i is line i
+    with the state renamed to its own copy, so one evaluation per step serves every
+    candidate."""
     target = state.contract.targets[j]
     errors = np.full(len(lines), np.inf)
+    lines = [ln.renumbered(line) for line in lines]
     compiled, params, usable = _usable_fits(state, j, lines)
     if not usable:
         return errors
+    union, members, wide, alone = _side_by_side(usable, lines, params, state, len(recordings))
+    if members:
+        source = ln.assemble("batch", [target, *state.contract.arguments], [union], ["y0"])
+        try:
+            program = interp.lower(source, n_outputs=1)
+        except (interp.LoweringError, ValueError):
+            program = None
+        if program is None:
+            alone = usable
+        else:
+            k = len(members)
+            held = None if windows is None else list(windows) * k
+            sim = simulate_host(
+                program, (target,), wide, list(recordings) * k,
+                substeps=config.substeps, blowup=config.blowup, windows=held,
+            )  # fmt: skip
+            measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])
+            err = _nrmse(sim, np.tile(measured[:, None], (k, 1, 1)), held)  # [k * B, 1]
+            for i, e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+                errors[i] = float(e)
 
     def simulate(group: list[tuple[int, int]]) -> None:
         """Simulate a group of lines in one program; halve the group if it is too large."""
@@ -745,8 +777,35 @@ def _single_errors(
         for (_, i), e in zip(group, err.mean(axis=0), strict=True):
             errors[i] = float(e)
 
-    simulate(usable)
+    if alone:
+        simulate(alone)
     return errors
+
+
+def _side_by_side(
+    usable: Sequence[tuple[int, int]], lines: Sequence[ln.Line], params: np.ndarray,
+    state: SearchState, n: int,
+) -> tuple[ln.Line, list[int], np.ndarray, list[tuple[int, int]]]:  # fmt: skip
+    """The usable lines (``(compiled index, line index)`` of :func:`_usable_fits`, ``lines``
+    renumbered) as rows of one batch: the line holding every one-parameter term of those that
+    are sums of distinct one-parameter terms (:func:`_union`), the indices of those lines, their
+    parameters ``[lines * n, U]`` (line after line, one row per recording, zero on the terms a
+    line lacks: the union then computes each line's value), and the other usable lines
+    (simulated on their own)."""
+    union, maps = _union([lines[i] for _, i in usable])
+    members: list[int] = []
+    blocks: list[np.ndarray] = []
+    alone: list[tuple[int, int]] = []
+    for (c, i), where in zip(usable, maps, strict=True):
+        if where is None:
+            alone.append((c, i))
+            continue
+        rows = _per_recording(params[c, :, : lines[i].n_params], state, n)
+        wide = np.zeros((rows.shape[0], max(1, union.n_params)))
+        wide[:, where] = rows
+        members.append(i)
+        blocks.append(wide)
+    return union, members, np.concatenate(blocks) if blocks else np.zeros((0, 1)), alone
 
 
 def _coupled_error(
@@ -879,23 +938,42 @@ def dae_error(
     parameter vector, or ``[B, P]``: one row per recording. The other channels and the initial
     states are played in from ``played_from`` (default: ``recordings``). ``windows``: each
     row's time block (:func:`simulate_host`)."""
+    errors = dae_errors(
+        de, ae_program, ae_targets, ae_params, recordings, config, played_from, windows
+    )
+    return float(np.mean(errors))
+
+
+def dae_errors(
+    de: Equations,
+    ae_program: interp.Program,
+    ae_targets: Sequence[str],
+    ae_params: np.ndarray,
+    recordings: Sequence[Dataset],
+    config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:
+    """The NRMSE ``[B, S]`` of each recording's states in :func:`dae_error` (inf where a
+    rollout diverged; all inf if the state equations do not lower). A recording may be given
+    for several rows, each with its own algebraic parameters (options side by side)."""
+    targets = tuple(de.contract.targets)
     skeleton = de.skeleton()
     program = interp.program_of(skeleton)
     if program is None:
-        return float("inf")
+        return np.full((len(recordings), len(targets)), np.inf)
     b = len(recordings)
     p = np.asarray(de.params, dtype=float)[None, : max(1, skeleton.n_params)]
     q = np.asarray(ae_params, dtype=float)
     if q.ndim == 1:
         q = np.repeat(q[None, : max(1, ae_program.n_params)], b, axis=0)
-    targets = tuple(de.contract.targets)
     sim = simulate_host(
         program, targets, np.repeat(p, b, axis=0),
         list(recordings) if played_from is None else list(played_from),
         algebraic=(ae_program, tuple(ae_targets), q),
         substeps=config.substeps, blowup=config.blowup, windows=windows,
     )  # fmt: skip
-    return float(np.mean(simulation_error(sim, recordings, targets, windows)))
+    return simulation_error(sim, recordings, targets, windows)
 
 
 def simulation_nrmse(
@@ -948,9 +1026,11 @@ def _closed_errors(
     recording left out, and the held-out recording is simulated with every state integrated by
     the state equations ``de`` (their parameters as fitted), the line's variable computed by the
     line from the simulated states, and every other channel played in. The error is the mean
-    NRMSE of the states. The candidates are simulated side by side: one program whose outputs
-    are the state equations once per candidate, the line written in where its variable stands
-    and the states renamed to the candidate's own copies."""
+    NRMSE of the states. The candidates are simulated side by side: those that are sums of
+    one-parameter terms as rows of one batch (:func:`_side_by_side`), the batch's line closing
+    the state equations at every stage; any other in one program whose outputs are the state
+    equations once per candidate, the line written in where its variable stands and the states
+    renamed to the candidate's own copies."""
     target = ae_state.contract.targets[j]
     states = tuple(de.contract.targets)
     de_lines, mappings = ln.split_lines(de.source)
@@ -974,6 +1054,35 @@ def _closed_errors(
     states = tuple(s for s, _ in driven)
     measured = np.stack([[np.asarray(ds[s], dtype=float) for s in states] for ds in recordings])
     source_of_play = list(recordings) if played_from is None else list(played_from)
+    arguments = [*dict.fromkeys([*de.contract.arguments, *ae_state.contract.arguments])]
+    b = len(recordings)
+    union, members, wide, alone = _side_by_side(usable, lines, params, ae_state, b)
+    if members:
+        # the lines as the closure of the driven state equations (their parameters written in)
+        de_lines = [ln.Line(expr, 0) for _, expr in driven]
+        outputs = [f"y{k}" for k in range(len(states))]
+        try:
+            ae_program = interp.lower(
+                ln.assemble("algebraic", ae_state.contract.arguments, [union], ["y0"]),
+                n_outputs=1,
+            )
+            program = interp.lower(
+                ln.assemble("closed", [*states, *arguments], de_lines, outputs),
+                n_outputs=len(outputs),
+            )
+        except (interp.LoweringError, ValueError):
+            alone = usable
+        else:
+            k = len(members)
+            held = None if windows is None else list(windows) * k
+            sim = simulate_host(
+                program, states, np.zeros((k * b, 1)), source_of_play * k,
+                algebraic=(ae_program, (target,), wide),
+                substeps=config.substeps, blowup=config.blowup, windows=held,
+            )  # fmt: skip
+            err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * B, states]
+            for i, e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+                errors[i] = float(e)
 
     def simulate(group: list[tuple[int, int]]) -> None:
         names: list[str] = []
@@ -989,7 +1098,6 @@ def _closed_errors(
                 names.append(f"{s}_c{i}")
                 blocks.append(params[c, :, :n])
         used = set().union(*(line.variables() for line in closed))
-        arguments = dict.fromkeys([*de.contract.arguments, *ae_state.contract.arguments])
         played = [a for a in arguments if a in used and a not in names]
         outputs = [f"y{k}" for k in range(len(names))]
         source = ln.assemble("closed", [*played, *names], closed, outputs)
@@ -1010,7 +1118,8 @@ def _closed_errors(
         for (_, i), e in zip(group, err.mean(axis=(0, 2)), strict=True):
             errors[i] = float(e)
 
-    simulate(usable)
+    if alone:
+        simulate(alone)
     return errors
 
 
@@ -1217,14 +1326,15 @@ def select_algebraic(
         options.pop(current_lines[j].text, None)
         if not options:
             continue
-        trials = []
-        for line in options.values():
-            trial_lines = [*current_lines[:j], line, *current_lines[j + 1 :]]
-            trial_error = _closed_loro(
-                held.state, trial_lines, de, held.recordings, config, held.played_from, fits,
-                held.windows,
-            )  # fmt: skip
-            trials.append((line, trial_lines, trial_error))
+        candidates = list(options.values())
+        trial_errors = _closed_trials(
+            held.state, current_lines, j, candidates, de, held.recordings, config,
+            held.played_from, fits, held.windows,
+        )  # fmt: skip
+        trials = [
+            (line, [*current_lines[:j], line, *current_lines[j + 1 :]], e)
+            for line, e in zip(candidates, trial_errors, strict=True)
+        ]
         entry = report["equations"][target]  # type: ignore[index]
         entry["closed"] = [{"line": line.text, "dae_nrmse": e} for line, _, e in trials]
         entry["dae_nrmse"] = next(
@@ -1345,17 +1455,81 @@ def _closed_loro(
     )
 
 
+def _closed_trials(
+    ae_state: SearchState, lines: Sequence[ln.Line], j: int, options: Sequence[ln.Line],
+    de: Equations, recordings: Sequence[Dataset], config: SelectionConfig,
+    played_from: Sequence[Dataset] | None = None,
+    fits: dict[tuple[int, str], np.ndarray | None] | None = None,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> list[float]:  # fmt: skip
+    """:func:`_closed_loro` of the closed model with each of ``options`` in place of line
+    ``j`` of ``lines``. The options that are sums of one-parameter terms run side by side as
+    rows of one batch (line ``j`` holding all their terms, each row's parameters zero on the
+    terms its option lacks); any other runs on its own."""
+    fits = {} if fits is None else fits
+    n = len(recordings)
+    errors = [float("inf")] * len(options)
+    renumbered = [ln.renumbered(line) for line in options]
+    fitted = []  # (option index, its fold parameters [folds, P])
+    for i, line in enumerate(renumbered):
+        if (j, line.text) not in fits:
+            _, params, usable = _usable_fits(ae_state, j, [line])
+            fits[j, line.text] = params[0, :, : line.n_params] if usable else None
+        if fits[j, line.text] is not None:
+            fitted.append((i, fits[j, line.text]))
+    union, maps = _union([renumbered[i] for i, _ in fitted])
+    members = [
+        (i, block, where)
+        for (i, block), where in zip(fitted, maps, strict=True)
+        if where is not None
+    ]
+    others = [i for (i, _), where in zip(fitted, maps, strict=True) if where is None]
+    closure = None
+    if members:
+        trial = [*lines[:j], union, *lines[j + 1 :]]
+        closure = _closure(ae_state, trial, n, fits, skip=j)
+    if closure is None:
+        others = [i for i, _ in fitted]
+    else:
+        program, rows = closure  # line j's columns are zeros: each member writes its own
+        start = sum(ln.renumbered(line).n_params for line in lines[:j])
+        batch = np.tile(rows, (len(members), 1))
+        for m, (_, block, where) in enumerate(members):
+            batch[m * n : (m + 1) * n, [start + w for w in where]] = _per_recording(
+                block, ae_state, n
+            )
+        k = len(members)
+        err = dae_errors(
+            de, program, ae_state.contract.targets, batch, list(recordings) * k, config,
+            None if played_from is None else list(played_from) * k,
+            None if windows is None else list(windows) * k,
+        )  # fmt: skip
+        for (i, _, _), e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+            errors[i] = float(e)
+    for i in others:
+        trial = [*lines[:j], options[i], *lines[j + 1 :]]
+        errors[i] = _closed_loro(
+            ae_state, trial, de, recordings, config, played_from, fits, windows
+        )
+    return errors
+
+
 def _closure(
     ae_state: SearchState, lines: Sequence[ln.Line], n: int,
     fits: dict[tuple[int, str], np.ndarray | None] | None = None,
+    skip: int | None = None,
 ) -> tuple[interp.Program, np.ndarray] | None:  # fmt: skip
     """The algebraic lines as one program and their parameters fitted with each fold left out,
     one row per recording (``n``, :func:`_per_recording`); None if a line does not compile or
-    fit. ``fits``: as in :func:`_closed_loro`."""
+    fit. ``fits``: as in :func:`_closed_loro`. Line ``skip`` is not fitted: its parameters are
+    zeros (for the caller to fill in)."""
     fits = {} if fits is None else fits
     lines = [ln.renumbered(line) for line in lines]
     blocks = []
     for j, line in enumerate(lines):
+        if j == skip:
+            blocks.append(np.zeros((len(np.unique(_folds(ae_state))), line.n_params)))
+            continue
         if (j, line.text) not in fits:
             _, params, usable = _usable_fits(ae_state, j, [line])
             fits[j, line.text] = params[0, :, : line.n_params] if usable else None
@@ -1433,24 +1607,18 @@ def _states_closed_errors(
     _, params, usable = _usable_fits(de_state, j, lines)
     if not usable:
         return errors
-    union, maps = _union([lines[i] for _, i in usable])
-    groups: list[tuple[ln.Line, list[tuple[int, np.ndarray]]]] = []
-    shared: list[tuple[int, np.ndarray]] = []
-    for (c, i), where in zip(usable, maps, strict=True):
-        n = lines[i].n_params
-        rows = _per_recording(params[c, :, :n], de_state, len(recordings))
-        if where is None:
-            groups.append((lines[i], [(i, rows)]))
-            continue
-        wide = np.zeros((rows.shape[0], max(1, union.n_params)))
-        wide[:, where] = rows
-        shared.append((i, wide))
-    if shared:
-        groups.append((union, shared))
+    b = len(recordings)
+    union, members, wide, alone = _side_by_side(usable, lines, params, de_state, b)
+    groups = [
+        (lines[i], [i], _per_recording(params[c, :, : lines[i].n_params], de_state, b))
+        for c, i in alone
+    ]
+    if members:
+        groups.append((union, members, wide))
     ae_program, ae_targets, ae_rows = closure
     source_of_play = list(recordings) if played_from is None else list(played_from)
     measured = np.stack([[np.asarray(ds[s], dtype=float) for s in targets] for ds in recordings])
-    for line, members in groups:
+    for line, indices, rows in groups:
         equations = [*fixed[:j], line, *fixed[j:]]
         used = set().union(*(e.variables() for e in equations))
         arguments = [
@@ -1463,15 +1631,15 @@ def _states_closed_errors(
             )
         except (interp.LoweringError, ValueError):
             continue
-        k = len(members)
+        k = len(indices)
         held = None if windows is None else list(windows) * k
         sim = simulate_host(
-            program, targets, np.concatenate([rows for _, rows in members]),
+            program, targets, rows,
             source_of_play * k, algebraic=(ae_program, ae_targets, np.tile(ae_rows, (k, 1))),
             substeps=config.substeps, blowup=config.blowup, windows=held,
         )  # fmt: skip
         err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * recordings, states]
-        for (i, _), e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+        for i, e in zip(indices, err.reshape(k, -1).mean(axis=1), strict=True):
             errors[i] = float(e)
     return errors
 

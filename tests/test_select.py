@@ -4,8 +4,10 @@ with the diffrax rollout, and a hidden slow term that derivative errors cannot s
 from __future__ import annotations
 
 import ast
+import dataclasses
 import itertools
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -42,6 +44,23 @@ def _drift(n: int = 3, noise: float = 0.02, seed: int = 0) -> list[Dataset]:
         ds = Dataset.create(t, {"x": xn, "u": u}, {"x": "state", "u": "input"}, events=(2.0,))
         out.append(ds.with_estimated_derivatives())
     return out
+
+
+def test_a_recording_given_for_several_rows_simulates_as_copies_of_it():
+    """Rows that share a recording (candidates side by side) read it once: the rollouts are
+    those of distinct copies, to the bit."""
+    recordings = _drift(n=2)
+    sk = compile_skeleton(
+        "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n", variables=("x", "u"),
+        n_outputs=1,
+    )  # fmt: skip
+    program = interp.program_of(sk)
+    p = np.array([[0.5, -0.05], [0.4, -0.1], [0.3, -0.2], [0.6, -0.3]])
+    shared = simulate_host(program, ("x",), p, [*recordings, *recordings])
+    copies = [eqx.tree_at(lambda d: d.t, ds, np.array(ds.t)) for ds in recordings]
+    apart = simulate_host(program, ("x",), p, [*recordings, *copies])
+    assert np.array_equal(shared, apart)
+    assert not np.array_equal(shared[0], shared[2])  # each row its own parameters
 
 
 def test_host_simulation_agrees_with_the_rollout():
@@ -642,3 +661,56 @@ def test_closed_candidates_batched_in_one_program_score_as_each_alone():
     assert np.all(np.isfinite(together))
     np.testing.assert_allclose(together, alone, rtol=1e-9)
     assert together[0] < together[1]  # the true line simulates better closed than the stand-in
+
+
+def test_candidates_side_by_side_score_as_each_alone():
+    """The played-in, the closed-variable and the closed-model stages simulate a batch of lines
+    as rows of one program holding all their terms (zero where a row's line lacks one, the
+    terms in the union's order): each line's error is the one it has simulated alone, and a
+    line that is not a sum of one-parameter terms runs on its own."""
+    from jaxdmd.select import (
+        SelectionConfig,
+        _assemble,
+        _closed_errors,
+        _closed_loro,
+        _closed_trials,
+        _single_errors,
+    )
+
+    recordings = _follower()
+    state, _ = _follower_search(recordings)
+    ae_state, _ = _closed_setup(recordings, search.final_equations(state))
+
+    def line(text: str) -> ln.Line:
+        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+
+    config = SelectionConfig()
+    # d y/dt as the played-in stage sees it
+    candidates = [
+        line("p[0] * x + p[1] * y"), line("p[0] * u + p[1] * y"), line("p[0] * w"),
+        line("p[0] * (x - p[1] * y)"), line("p[0] * y + p[1] * x + p[2] * u"),
+    ]  # fmt: skip
+    together = _single_errors(state, 1, candidates, recordings, config)
+    alone = [_single_errors(state, 1, [c], recordings, config)[0] for c in candidates]
+    assert np.all(np.isfinite(together))
+    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    assert together[0] < together[1]
+    # w closing d y/dt = 20 w: its candidates with w computed from the simulated states
+    de = _assemble(state, [line("p[0] * u + p[1] * x"), line("p[0] * w")])
+    assert de is not None
+    de = dataclasses.replace(de, params=(0.8, -0.8, 20.0))
+    candidates = [
+        line("p[0] * x + p[1] * y"), line("p[0] * x + p[1] * u"), line("p[0] * x"),
+        line("p[0] * (x - p[1] * y)"), line("p[0] * y + p[1] * u + p[2] * x"),
+    ]  # fmt: skip
+    together = _closed_errors(ae_state, 0, candidates, de, recordings, config)
+    alone = [_closed_errors(ae_state, 0, [c], de, recordings, config)[0] for c in candidates]
+    assert np.all(np.isfinite(together))
+    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    assert together[0] < together[1] and together[0] < together[2]
+    # the closed model with each candidate in w's place
+    together = _closed_trials(ae_state, candidates[:1], 0, candidates, de, recordings, config)
+    alone = [_closed_loro(ae_state, [c], de, recordings, config) for c in candidates]
+    assert np.all(np.isfinite(together))
+    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    assert together[0] < together[1] and together[0] < together[2]
