@@ -923,27 +923,6 @@ def select_by_simulation(
 # the closed model (DAE): the algebraic variables computed, never played in
 
 
-def dae_error(
-    de: Equations,
-    ae_program: interp.Program,
-    ae_targets: Sequence[str],
-    ae_params: np.ndarray,
-    recordings: Sequence[Dataset],
-    config: SelectionConfig,
-    played_from: Sequence[Dataset] | None = None,
-    windows: Sequence[tuple[int, int]] | None = None,
-) -> float:
-    """Mean NRMSE of the states of the closed model (the algebraic variables computed by the AE
-    program) simulated on ``recordings``; inf if a rollout diverged. ``ae_params`` is one
-    parameter vector, or ``[B, P]``: one row per recording. The other channels and the initial
-    states are played in from ``played_from`` (default: ``recordings``). ``windows``: each
-    row's time block (:func:`simulate_host`)."""
-    errors = dae_errors(
-        de, ae_program, ae_targets, ae_params, recordings, config, played_from, windows
-    )
-    return float(np.mean(errors))
-
-
 def dae_errors(
     de: Equations,
     ae_program: interp.Program,
@@ -954,9 +933,12 @@ def dae_errors(
     played_from: Sequence[Dataset] | None = None,
     windows: Sequence[tuple[int, int]] | None = None,
 ) -> np.ndarray:
-    """The NRMSE ``[B, S]`` of each recording's states in :func:`dae_error` (inf where a
-    rollout diverged; all inf if the state equations do not lower). A recording may be given
-    for several rows, each with its own algebraic parameters (options side by side)."""
+    """NRMSE ``[B, S]`` of the states of the closed model (the algebraic variables computed by
+    the AE program) simulated on each of ``recordings``; inf where a rollout diverged (all inf
+    if the state equations do not lower). ``ae_params`` is one parameter vector, or ``[B, P]``:
+    one row per recording (a recording may be given for several rows, as for options side by
+    side). The other channels and the initial states are played in from ``played_from``
+    (default: ``recordings``). ``windows``: each row's time block (:func:`simulate_host`)."""
     targets = tuple(de.contract.targets)
     skeleton = de.skeleton()
     program = interp.program_of(skeleton)
@@ -997,7 +979,8 @@ def simulation_nrmse(
     program = interp.program_of(skeleton)
     if program is None:
         return float("inf")
-    return dae_error(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
+    errors = dae_errors(de, program, ae.contract.targets, np.asarray(ae.params), recordings, config)
+    return float(np.mean(errors))
 
 
 def _with_constants(line: ln.Line, params: Sequence[float]) -> ast.expr:
@@ -1450,9 +1433,10 @@ def _closed_loro(
     if closure is None:
         return float("inf")
     program, rows = closure
-    return dae_error(
+    errors = dae_errors(
         de, program, ae_state.contract.targets, rows, recordings, config, played_from, windows
     )
+    return float(np.mean(errors))
 
 
 def _closed_trials(
