@@ -736,15 +736,10 @@ def _single_errors(
         if program is None:
             alone = usable
         else:
-            k = len(members)
-            held = None if windows is None else list(windows) * k
-            sim = simulate_host(
-                program, (target,), wide, list(recordings) * k,
-                substeps=config.substeps, blowup=config.blowup, windows=held,
-            )  # fmt: skip
             measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])
-            err = _nrmse(sim, np.tile(measured[:, None], (k, 1, 1)), held)  # [k * B, 1]
-            for i, e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+            err = _batch_errors(program, (target,), wide, recordings, measured[:, None], config,
+                                windows)  # fmt: skip
+            for i, e in zip(members, err, strict=True):
                 errors[i] = float(e)
 
     def simulate(group: list[tuple[int, int]]) -> None:
@@ -780,6 +775,26 @@ def _single_errors(
     if alone:
         simulate(alone)
     return errors
+
+
+def _batch_errors(
+    program: interp.Program, states: Sequence[str], rows: np.ndarray,
+    recordings: Sequence[Dataset], measured: np.ndarray, config: SelectionConfig,
+    windows: Sequence[tuple[int, int]] | None = None,
+    algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """The mean NRMSE of each of ``k`` candidates run side by side: parameter rows
+    ``[k * B, P]`` (candidate after candidate, one row per recording) simulated on the ``B``
+    ``recordings`` (and ``windows``, one per recording) and scored against ``measured``
+    ``[B, S, n]``. Returns ``[k]``."""
+    k = rows.shape[0] // len(recordings)
+    held = None if windows is None else list(windows) * k
+    sim = simulate_host(
+        program, states, rows, list(recordings) * k, algebraic=algebraic,
+        substeps=config.substeps, blowup=config.blowup, windows=held,
+    )  # fmt: skip
+    err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * B, S]
+    return err.reshape(k, -1).mean(axis=1)
 
 
 def _side_by_side(
@@ -1056,15 +1071,11 @@ def _closed_errors(
         except (interp.LoweringError, ValueError):
             alone = usable
         else:
-            k = len(members)
-            held = None if windows is None else list(windows) * k
-            sim = simulate_host(
-                program, states, np.zeros((k * b, 1)), source_of_play * k,
-                algebraic=(ae_program, (target,), wide),
-                substeps=config.substeps, blowup=config.blowup, windows=held,
+            err = _batch_errors(
+                program, states, np.zeros((len(members) * b, 1)), source_of_play, measured,
+                config, windows, algebraic=(ae_program, (target,), wide),
             )  # fmt: skip
-            err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * B, states]
-            for i, e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
+            for i, e in zip(members, err, strict=True):
                 errors[i] = float(e)
 
     def simulate(group: list[tuple[int, int]]) -> None:
@@ -1456,11 +1467,9 @@ def _closed_trials(
     renumbered = [ln.renumbered(line) for line in options]
     fitted = []  # (option index, its fold parameters [folds, P])
     for i, line in enumerate(renumbered):
-        if (j, line.text) not in fits:
-            _, params, usable = _usable_fits(ae_state, j, [line])
-            fits[j, line.text] = params[0, :, : line.n_params] if usable else None
-        if fits[j, line.text] is not None:
-            fitted.append((i, fits[j, line.text]))
+        block = _fold_fit(ae_state, j, line, fits)
+        if block is not None:
+            fitted.append((i, block))
     union, maps = _union([renumbered[i] for i, _ in fitted])
     members = [
         (i, block, where)
@@ -1498,6 +1507,17 @@ def _closed_trials(
     return errors
 
 
+def _fold_fit(
+    ae_state: SearchState, j: int, line: ln.Line, fits: dict[tuple[int, str], np.ndarray | None]
+) -> np.ndarray | None:
+    """Line ``j``'s (renumbered) parameters fitted with each fold left out, ``[folds, P]``
+    (None if it does not compile or fit), kept in ``fits`` (a line is fitted once)."""
+    if (j, line.text) not in fits:
+        _, params, usable = _usable_fits(ae_state, j, [line])
+        fits[j, line.text] = params[0, :, : line.n_params] if usable else None
+    return fits[j, line.text]
+
+
 def _closure(
     ae_state: SearchState, lines: Sequence[ln.Line], n: int,
     fits: dict[tuple[int, str], np.ndarray | None] | None = None,
@@ -1514,10 +1534,7 @@ def _closure(
         if j == skip:
             blocks.append(np.zeros((len(np.unique(_folds(ae_state))), line.n_params)))
             continue
-        if (j, line.text) not in fits:
-            _, params, usable = _usable_fits(ae_state, j, [line])
-            fits[j, line.text] = params[0, :, : line.n_params] if usable else None
-        block = fits[j, line.text]
+        block = _fold_fit(ae_state, j, line, fits)
         if block is None:
             return None
         blocks.append(block)
@@ -1615,15 +1632,11 @@ def _states_closed_errors(
             )
         except (interp.LoweringError, ValueError):
             continue
-        k = len(indices)
-        held = None if windows is None else list(windows) * k
-        sim = simulate_host(
-            program, targets, rows,
-            source_of_play * k, algebraic=(ae_program, ae_targets, np.tile(ae_rows, (k, 1))),
-            substeps=config.substeps, blowup=config.blowup, windows=held,
-        )  # fmt: skip
-        err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * recordings, states]
-        for i, e in zip(indices, err.reshape(k, -1).mean(axis=1), strict=True):
+        closed = (ae_program, ae_targets, np.tile(ae_rows, (len(indices), 1)))
+        err = _batch_errors(
+            program, targets, rows, source_of_play, measured, config, windows, algebraic=closed
+        )
+        for i, e in zip(indices, err, strict=True):
             errors[i] = float(e)
     return errors
 
