@@ -463,7 +463,9 @@ def discovery_config(args: argparse.Namespace) -> Any:
         n_islands=args.islands,
         recombine=not args.no_recombine,
     )
-    return dataclasses.replace(base, search=search, integral_window=args.integral)
+    # a pair in a worker process runs beside others (--jobs): its searches one after the other
+    jobs = 1 if args.worker else None
+    return dataclasses.replace(base, search=search, integral_window=args.integral, jobs=jobs)
 
 
 def oracle_contracts(ds: Any) -> tuple[Any, Any]:

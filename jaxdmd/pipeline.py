@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -35,7 +36,7 @@ from typing import Any, Literal, Protocol
 import jax
 import numpy as np
 
-from jaxdmd import search
+from jaxdmd import search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import StateEstimate
 from jaxdmd.problems import ae_problem, de_problem
@@ -60,7 +61,7 @@ from jaxdmd.select import (
     simulation_nrmse,
     weighted_by_recording,
 )
-from jaxdmd.simfit import refit_finalists
+from jaxdmd.simfit import refit_finalists, refit_task, simulated_structure
 
 __all__ = [
     "Discovery",
@@ -116,10 +117,15 @@ class DiscoveryConfig:
         ae_joint: with ``ae_states="model"``, refit the AE equations by maximum likelihood with
             the states unknown (:func:`jaxdmd.refine.refit_joint`).
         ae_joint_steps: the joint refit's BFGS steps at most.
-        searches: independent searches of the DE loop (PRNG keys folded from the DE key),
-            run one after the other; their archives are pooled for the final choice, and each
-            chosen term's share of the searches whose own final equations hold it is reported
-            (the structure must not be an accident of one search path).
+        searches: independent searches of the DE loop (PRNG keys folded from the DE key);
+            their archives are pooled for the final choice, and each chosen term's share of
+            the searches whose own final equations hold it is reported (the structure must not
+            be an accident of one search path).
+        jobs: how many of those searches run at once, each in its own process
+            (:mod:`jaxdmd.workers`); None: as many as this process has cores. Each search's
+            archive is the same to the last bit however many run at once. Only the built-in
+            offline proposer searches in other processes (a language model's proposer is one
+            object that every loop shares).
         selection: how the final state equations are chosen among the archive's alternatives
             by how they simulate the training recordings (:mod:`jaxdmd.select`); None keeps
             the choice by cross-validated derivative error alone.
@@ -138,6 +144,7 @@ class DiscoveryConfig:
     ae_joint: bool = True
     ae_joint_steps: int = 1000
     searches: int = 3
+    jobs: int | None = None
     selection: SelectionConfig | None = field(default_factory=SelectionConfig)
 
     def __post_init__(self) -> None:
@@ -149,6 +156,8 @@ class DiscoveryConfig:
             raise ValueError(f"ae_states must be 'model' or 'smoothed', got {self.ae_states!r}")
         if self.searches < 1:
             raise ValueError(f"searches must be at least 1, got {self.searches}")
+        if self.jobs is not None and self.jobs < 1:
+            raise ValueError(f"jobs must be at least 1 or None, got {self.jobs}")
         for name in ("integral_window", "refit_window", "de_gamma", "ae_gamma"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -289,6 +298,100 @@ def resume_or_init(
         except (ValueError, KeyError, TypeError) as err:
             raise ValueError(f"cannot resume from the checkpoint {path}: {err}") from None
     return search.init(problem, contract, key, config)
+
+
+class _Locked:
+    """An observer whose calls are serialised (the searches in worker processes report from
+    threads of this process)."""
+
+    def __init__(self, observer: Observer) -> None:
+        self.observer = observer
+        self._lock = threading.Lock()
+
+    def loop_started(self, name: str, state: SearchState) -> None:
+        with self._lock:
+            self.observer.loop_started(name, state)
+
+    def round(self, name: str, state: SearchState, report: RoundReport) -> None:
+        with self._lock:
+            self.observer.round(name, state, report)
+
+    def message(self, text: str) -> None:
+        with self._lock:
+            self.observer.message(text)
+
+
+def _search_task(
+    problem: Problem, contract: Contract, key_data: np.ndarray, config: SearchConfig,
+    checkpoint: Path | None, factory: ProposerFactory, *, progress: Callable[[Any], None],
+) -> dict[str, object]:  # fmt: skip
+    """One DE search in a worker process (:func:`jaxdmd.workers.start`): its state after each
+    round goes back as progress (and to ``checkpoint``), its final state as the result."""
+    key = jax.random.wrap_key_data(jax.numpy.asarray(key_data))
+    state = resume_or_init(problem, contract, key, config, checkpoint)
+    progress(("started", search.state_to_dict(state)))
+    state = run_loop(
+        state,
+        factory(problem, "DE"),
+        on_round=lambda s, r: progress(("round", search.state_to_dict(s), r)),
+        checkpoint=checkpoint,
+    )
+    return search.state_to_dict(state)
+
+
+def _finished(checkpoint: Path | None) -> bool:
+    """A search whose checkpoint says it is done (resuming it costs nothing here)."""
+    try:
+        return checkpoint is not None and bool(json.loads(checkpoint.read_text()).get("done"))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def _searches_side_by_side(
+    names: Sequence[str], keys: Sequence[jax.Array], problem: Problem, contract: Contract,
+    config: SearchConfig, factory: ProposerFactory, folder: Path | None, observer: Observer,
+    label: str, jobs: int, here: Callable[[str, jax.Array], SearchState],
+) -> list[SearchState]:  # fmt: skip
+    """The searches ``names`` (PRNG ``keys``) at most ``jobs`` at once: the first here
+    (``here(name, key)``), ``jobs - 1`` of the others in worker processes, and those left
+    here after the first. Their rounds are shown as they come; a search whose worker fails
+    runs here afterwards, from its checkpoint."""
+    from jaxdmd import workers
+
+    def checkpoint(name: str) -> Path | None:
+        return None if folder is None else folder / f"{name.lower()}_state.json"
+
+    def show(name: str) -> Callable[[Any], None]:
+        def progress(message: Any) -> None:
+            state = search.state_from_dict(message[1], problem, config)
+            if message[0] == "started":
+                observer.loop_started(f"{label}{name}", state)
+            else:
+                observer.round(f"{label}{name}", state, message[2])
+
+        return progress
+
+    away = [i for i in range(1, len(names)) if not _finished(checkpoint(names[i]))][: jobs - 1]
+    running: dict[int, workers.Worker] = {}
+    states: dict[int, SearchState] = {}
+    try:
+        for i in away:
+            running[i] = workers.start(
+                _search_task, problem, contract, np.asarray(jax.random.key_data(keys[i])),
+                config, checkpoint(names[i]), factory, on_progress=show(names[i]),
+            )  # fmt: skip
+        for i in (i for i in range(len(names)) if i not in running):
+            states[i] = here(names[i], keys[i])
+        for i, worker in running.items():
+            try:
+                states[i] = search.state_from_dict(worker.result(), problem, config)
+            except workers.WorkerError as err:
+                observer.message(f"{names[i]}: its worker process failed ({err}); run here")
+                states[i] = here(names[i], keys[i])
+    finally:
+        for worker in running.values():
+            worker.stop()
+    return [states[i] for i in range(len(names))]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -585,7 +688,7 @@ def discover(
         A :class:`Discovery`.
     """
     config = config or DiscoveryConfig()
-    observer = observer or _Silent()
+    observer = _Locked(observer or _Silent())  # searches in other processes report from threads
     factory = _factory(proposer)
     key = jax.random.key(0) if key is None else key
     train = list(train)
@@ -626,10 +729,21 @@ def discover(
         train, matched=config.matched, weighted=weighted, integral=integral, smooth=bool(integral)
     )
     keys = [de_key, *(jax.random.fold_in(de_key, 100 + i) for i in range(1, config.searches))]
-    de_states = [
-        run("DE" if i == 0 else f"DE{i + 1}", de_problem_, de_contract, k, config.de_search())
-        for i, k in enumerate(keys)
-    ]
+    names = ["DE" if i == 0 else f"DE{i + 1}" for i in range(config.searches)]
+    jobs = workers.cores() if config.jobs is None else config.jobs
+    with workers.one_blas_thread():  # as in the worker processes: the same archives anywhere
+        if jobs > 1 and len(keys) > 1 and isinstance(factory, OfflineFactory):
+            de_states = _searches_side_by_side(
+                names, keys, de_problem_, de_contract, config.de_search(), factory, folder,
+                observer, label, jobs, lambda name, key: run(
+                    name, de_problem_, de_contract, key, config.de_search()
+                ),
+            )  # fmt: skip
+        else:
+            de_states = [
+                run(name, de_problem_, de_contract, k, config.de_search())
+                for name, k in zip(names, keys, strict=True)
+            ]
     # NMSEs of the integral form lie far below the derivatives': no absolute floor there
     floor = 0.0 if integral else 1e-4
     de_state = pool(de_states)
@@ -728,6 +842,17 @@ def discover(
                     "DE equations chosen again in the closed model: "
                     + ", ".join(f"d{t}/dt" for t in closed["changed"])  # type: ignore[union-attr]
                 )
+        # the loop's own choice is refitted by simulation with these state equations (below,
+        # in refit_finalists) whatever the refits between do to the selection's parameters:
+        # with a second core, that refit runs in a worker beside them
+        ahead = {}
+        if (
+            config.selection is not None and jobs > 1 and ae_selection is not None
+            and ae_selection.get("changed")
+            and simulated_structure(de, fit_choice) != simulated_structure(de, ae)
+        ):  # fmt: skip
+            worker = workers.start(refit_task, de, fit_choice, train, regressors, config.selection)
+            ahead["fit choice"] = worker.result
         bias_report = joint_report = None
         if estimates is not None and config.ae_bias_correction:
             start = time.perf_counter()
@@ -758,9 +883,10 @@ def discover(
             finalists = [("selected", ae)]
             if ae_selection is not None and ae_selection.get("changed"):
                 finalists.append(("fit choice", fit_choice))
-            de, ae, simulation_report = refit_finalists(
-                de, finalists, train, regressors, config.selection
-            )
+            with workers.one_blas_thread():  # as in the worker: the same refit either way
+                de, ae, simulation_report = refit_finalists(
+                    de, finalists, train, regressors, config.selection, ahead
+                )
             ae_seconds += simulation_report["seconds"]
             if simulation_report["chosen"] != "selected":
                 # the selection's changes are reported as not kept

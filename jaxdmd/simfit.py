@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdmd import lines as ln
-from jaxdmd import select
+from jaxdmd import select, workers
 from jaxdmd.data import Dataset
 from jaxdmd.search import Equations
 
@@ -328,7 +328,7 @@ def refit_simulation(
     return done("refit", (de_new, ae_new))
 
 
-def _simulated_structure(de: Equations, ae: Equations) -> tuple[str, ...]:
+def simulated_structure(de: Equations, ae: Equations) -> tuple[str, ...]:
     """The texts of ``ae``'s lines for the algebraic variables the state equations use, in
     order: what the simulation refit sees of an AE equation set (its residual holds only the
     states), less the parameters, which the refit fits."""
@@ -350,12 +350,22 @@ def held_out_error(report: dict[str, Any]) -> float:
     return value if np.isfinite(value) else float("inf")
 
 
+def refit_task(
+    de: Equations, ae: Equations, train: Sequence[Dataset],
+    played_from: Sequence[Dataset] | None, config: select.SelectionConfig | None, *,
+    progress: Callable[[Any], None],
+) -> tuple[Equations, Equations, dict[str, Any]]:  # fmt: skip
+    """:func:`refit_simulation` as the task of a worker process (:mod:`jaxdmd.workers`)."""
+    return refit_simulation(de, ae, train, played_from, config)
+
+
 def refit_finalists(
     de: Equations,
     finalists: Sequence[tuple[str, Equations]],
     train: Sequence[Dataset],
     played_from: Sequence[Dataset] | None = None,
     config: select.SelectionConfig | None = None,
+    started: Mapping[str, Callable[[], tuple[Equations, Equations, dict[str, Any]]]] | None = None,
 ) -> tuple[Equations, Equations, dict[str, Any]]:
     """Of several algebraic equation sets, the one whose structure simulates best once its
     parameters are fitted to simulate, judged on data they were not fitted to.
@@ -374,21 +384,34 @@ def refit_finalists(
     whether its refit was kept) and ``chosen`` (the name) added. A finalist whose lines for
     the variables the state equations use have the same structure as an earlier one's (they
     differ only where no state sees it, or in their parameters, which the refit fits) is not
-    refitted: there is no structure to decide between."""
+    refitted: there is no structure to decide between. ``started``: per finalist name, the
+    result of its :func:`refit_simulation` with these ``de``, ``train``, ``played_from`` and
+    ``config``, started before (in a worker process, beside other work); it is refitted here
+    if that fails."""
     if not finalists:
         raise ValueError("refit_finalists needs at least one finalist")
     config = config or select.SelectionConfig()
     start = time.perf_counter()
     results, seen = [], {}
     for name, ae in finalists:
-        structure = _simulated_structure(de, ae)
+        structure = simulated_structure(de, ae)
         if structure in seen:  # the states simulate the same structure: nothing to decide
             seen_name = seen[structure]
             skipped = f"not refitted: the lines the states use are those of {seen_name!r}"
             results.append((name, de, ae, {"kept": skipped}))
             continue
         seen[structure] = name
-        results.append((name, *refit_simulation(de, ae, train, played_from, config)))
+        refitted, failed = None, None
+        if started and name in started:
+            try:
+                refitted = started[name]()
+            except workers.WorkerError as err:
+                failed = str(err)
+        if refitted is None:
+            refitted = refit_simulation(de, ae, train, played_from, config)
+        if failed is not None:
+            refitted[2]["worker_failed"] = failed  # refitted here instead
+        results.append((name, *refitted))
     errors = [held_out_error(r[3]) for r in results]
     best = 0
     for i in range(1, len(results)):
@@ -398,6 +421,7 @@ def refit_finalists(
     report = dict(report)
     report["finalists"] = [
         {"name": r[0], "held_out_nrmse": e, "kept": r[3]["kept"]}
+        | ({"worker_failed": r[3]["worker_failed"]} if "worker_failed" in r[3] else {})
         for r, e in zip(results, errors, strict=True)
     ]
     report["chosen"] = name

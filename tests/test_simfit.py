@@ -8,11 +8,11 @@ import pytest
 from tracking import tracking
 
 import jaxdmd  # noqa: F401  (float64)
-from jaxdmd import interp, search
+from jaxdmd import interp, search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.select import SelectionConfig, dae_errors, simulation_nrmse
-from jaxdmd.simfit import _Simulator, refit_finalists, refit_simulation
+from jaxdmd.simfit import _Simulator, refit_finalists, refit_simulation, refit_task
 
 GAIN = 5.0
 
@@ -158,3 +158,27 @@ def test_a_finalist_replaces_the_preferred_one_only_when_clearly_better():
     assert report["finalists"][1]["kept"].startswith("not refitted"), report["finalists"]
     with pytest.raises(ValueError):
         refit_finalists(de, [], recordings)
+
+
+def test_a_finalist_refitted_in_a_worker_process_is_the_finalist_refitted_here():
+    """The stand-in's refit started in a worker process (beside other work, as discover does)
+    gives the choice and the numbers of the refit here; a worker that fails is replaced by the
+    refit here, and the report says so."""
+    recordings = _regulator()
+    de, truth = _equations(recordings, (2.0, -2.2))
+    stand_in = _stand_in(recordings, truth.contract)
+    finalists = [("truth", truth), ("stand-in", stand_in)]
+    here = refit_finalists(de, finalists, recordings)
+    worker = workers.start(refit_task, de, stand_in, recordings, None, None)
+    away = refit_finalists(de, finalists, recordings, started={"stand-in": worker.result})
+    assert away[1] == here[1] and away[0] == here[0]
+    assert away[2]["finalists"] == here[2]["finalists"]
+
+    def broken():
+        raise workers.WorkerError("exit status 9")
+
+    again = refit_finalists(de, finalists, recordings, started={"stand-in": broken})
+    assert again[1] == here[1]
+    failed = again[2]["finalists"][1]
+    assert failed.pop("worker_failed") == "exit status 9"
+    assert again[2]["finalists"] == here[2]["finalists"]

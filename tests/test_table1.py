@@ -255,6 +255,9 @@ def test_jobs_and_layout(tmp_path: Path) -> None:
     child = table1.build_parser().parse_args(cmd[2:])
     assert child.worker and child.generators == [31] and child.seed == 1
     assert child.out == str(out / "seed1") and child.seeds is None and child.jobs == 1
+    # a pair beside others searches one search at a time; alone, on every core
+    assert table1.discovery_config(child).jobs == 1
+    assert table1.discovery_config(args).jobs is None
     for key in table1.SETTING_KEYS:
         if key != "seed":
             assert getattr(child, key) == getattr(args, key), key

@@ -1,0 +1,120 @@
+"""Work in other processes (:mod:`jaxdmd.workers`): results, progress and failures come back;
+the DE loop's searches give the same archives side by side as one after the other."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdmd
+from jaxdmd import workers
+from jaxdmd.data import Dataset
+from jaxdmd.pipeline import DiscoveryConfig
+from jaxdmd.search import SearchConfig
+
+
+def _count(n: int, *, progress) -> dict[str, object]:
+    for i in range(n):
+        progress(i)
+    return {"pid": os.getpid(), "blas": os.environ.get("OPENBLAS_NUM_THREADS")}
+
+
+def _fail(text: str, *, progress) -> None:
+    progress("before")
+    raise ValueError(text)
+
+
+def _die(code: int, *, progress) -> None:
+    os._exit(code)
+
+
+def _chatty(*, progress) -> int:
+    print("a print in the task")  # must not corrupt the message stream
+    return 7
+
+
+def test_a_worker_returns_its_value_and_its_progress_in_order():
+    seen: list[object] = []
+    value = workers.start(_count, 5, on_progress=seen.append).result()
+    assert seen == [0, 1, 2, 3, 4]
+    assert value["pid"] != os.getpid()  # it ran in another process
+    assert value["blas"] == "1"
+    assert workers.start(_chatty).result() == 7
+
+
+def test_a_worker_that_raises_or_dies_is_a_worker_error_that_says_why():
+    seen: list[object] = []
+    with pytest.raises(workers.WorkerError, match="ValueError: no such generator"):
+        workers.start(_fail, "no such generator", on_progress=seen.append).result()
+    assert seen == ["before"]
+    with pytest.raises(workers.WorkerError, match="exit status 3"):
+        workers.start(_die, 3).result()
+
+
+def _recordings(n: int = 3) -> list[Dataset]:
+    """d a/dt = 2 (w - 1), d w/dt = 0.3 u - 0.8 (w - 1) with a little noise."""
+    t = np.linspace(0.0, 4.0, 401)
+    out = []
+    for k in range(n):
+        rng = np.random.default_rng(k)
+        u = np.where(t < 0.5, 0.0, 1.0 + 0.5 * k)
+        w, a = np.ones_like(t), np.zeros_like(t)
+        for i in range(t.size - 1):
+            h = t[i + 1] - t[i]
+            a[i + 1] = a[i] + h * 2 * (w[i] - 1)
+            w[i + 1] = w[i] + h * (0.3 * u[i] - 0.8 * (w[i] - 1))
+        clean = {"a": a, "w": w}
+        noisy = {s: x + 0.002 * np.ptp(x) * rng.normal(size=t.shape) for s, x in clean.items()}
+        roles = {"a": "state", "w": "state", "u": "input"}
+        out.append(Dataset.create(t, {**noisy, "u": u}, roles, events=(0.5,), label=f"r{k}"))
+    return out
+
+
+def test_searches_side_by_side_in_worker_processes_give_the_archives_of_one_after_the_other(
+    tmp_path,
+):
+    config = DiscoveryConfig(
+        search=SearchConfig(n_islands=2, prompts_per_round=2, samples_per_prompt=2, max_rounds=3),
+        algebraic=False, selection=None, refit_window=None, searches=3,
+    )  # fmt: skip
+    train = _recordings()
+    alone = jaxdmd.discover(
+        train, (), dataclasses.replace(config, jobs=1), key=jax.random.key(3),
+        checkpoints=tmp_path / "alone",
+    )  # fmt: skip
+    messages: list[str] = []
+
+    class Seen:
+        def loop_started(self, name, state):
+            messages.append(f"start {name}")
+
+        def round(self, name, state, report):
+            messages.append(f"{name} {report.round}")
+
+        def message(self, text):
+            messages.append(text)
+
+    together = jaxdmd.discover(
+        train, (), dataclasses.replace(config, jobs=3), key=jax.random.key(3),
+        checkpoints=tmp_path / "together", observer=Seen(),
+    )  # fmt: skip
+    for name in ("de", "de2", "de3"):
+        a = (tmp_path / "alone" / f"{name}_state.json").read_text()
+        b = (tmp_path / "together" / f"{name}_state.json").read_text()
+        assert a == b, name
+    assert together.de.source == alone.de.source
+    assert together.de.params == alone.de.params
+    # every search's start and rounds were shown, those of the workers too
+    for name in ("DE", "DE2", "DE3"):
+        assert f"start {name}" in messages
+        assert f"{name} 1" in messages
+    assert not any("worker process failed" in m for m in messages)
+
+
+def test_jobs_must_be_positive():
+    with pytest.raises(ValueError, match="jobs"):
+        DiscoveryConfig(jobs=0)
