@@ -356,7 +356,6 @@ def _searches_side_by_side(
     (``here(name, key)``), ``jobs - 1`` of the others in worker processes, and those left
     here after the first. Their rounds are shown as they come; a search whose worker fails
     runs here afterwards, from its checkpoint."""
-    from jaxdmd import workers
 
     def checkpoint(name: str) -> Path | None:
         return None if folder is None else folder / f"{name.lower()}_state.json"
