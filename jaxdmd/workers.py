@@ -132,12 +132,8 @@ class Worker:
 
     def stop(self) -> None:
         """End the worker now (its result is then an error)."""
-        _kill(self._process)
-
-
-def _kill(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.kill()
+        if self._process.poll() is None:
+            self._process.kill()
 
 
 def start(
