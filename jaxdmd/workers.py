@@ -23,7 +23,7 @@ import struct
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 _LENGTH = struct.Struct("<Q")
@@ -94,10 +94,12 @@ class Worker:
         self._reader.start()
 
     def _drain(self) -> None:
-        assert self._process.stderr is not None
-        for line in self._process.stderr:
-            self._stderr.append(line)
-            del self._stderr[:-40]  # the last lines are the ones that say why
+        stream = self._process.stderr
+        assert stream is not None
+        with stream:
+            for line in stream:
+                self._stderr.append(line)
+                del self._stderr[:-40]  # the last lines are the ones that say why
 
     def _read(self) -> None:
         stream = self._process.stdout
@@ -141,6 +143,30 @@ def start(
 ) -> Worker:
     """Start ``fn(*args, progress=...)`` in a worker process (see :class:`Worker`)."""
     return Worker(fn, args, on_progress)
+
+
+class Later(Sequence[Any]):
+    """A worker's result, a sequence, used as one before it is there: :meth:`Worker.result` is
+    waited for when the sequence is first used (its length, an item, an iteration). If the
+    worker failed, ``fallback()`` computes the sequence here instead."""
+
+    def __init__(self, worker: Worker, fallback: Callable[[], Sequence[Any]]) -> None:
+        self._worker, self._fallback = worker, fallback
+        self._items: list[Any] | None = None
+
+    def _resolved(self) -> list[Any]:
+        if self._items is None:
+            try:
+                self._items = list(self._worker.result())
+            except WorkerError:
+                self._items = list(self._fallback())
+        return self._items
+
+    def __len__(self) -> int:
+        return len(self._resolved())
+
+    def __getitem__(self, index: Any) -> Any:
+        return self._resolved()[index]
 
 
 def serve() -> int:

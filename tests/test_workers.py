@@ -115,6 +115,17 @@ def test_searches_side_by_side_in_worker_processes_give_the_archives_of_one_afte
     assert not any("worker process failed" in m for m in messages)
 
 
+def _items(n: int, *, progress) -> list[int]:
+    return list(range(n))
+
+
+def test_a_later_sequence_is_the_workers_result_or_if_it_failed_the_fallbacks():
+    later = workers.Later(workers.start(_items, 3), lambda: [9])
+    assert len(later) == 3 and list(later) == [0, 1, 2] and later[-1] == 2
+    failed = workers.Later(workers.start(_die, 3), lambda: [9])
+    assert list(failed) == [9] and bool(failed)
+
+
 def test_jobs_must_be_positive():
     with pytest.raises(ValueError, match="jobs"):
         DiscoveryConfig(jobs=0)
