@@ -18,12 +18,13 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
 
-from jaxdmd import pretty, search
+from jaxdmd import pretty, search, workers
 from jaxdmd.cli_data import ROLE_KEYS
 from jaxdmd.pipeline import DiscoveryConfig, OfflineFactory, discover
 from jaxdmd.report import Progress
@@ -228,7 +229,9 @@ RUN_KEYS = (
 # the discovery command
 
 
-def recordings(args: argparse.Namespace, progress: Progress) -> tuple[list, list, dict]:
+def recordings(
+    args: argparse.Namespace, progress: Progress, jobs: int = 1
+) -> tuple[list, Sequence, dict]:
     """Training and test recordings (files, or the benchmark's simulation) and their source."""
     if args.data:
         from jaxdmd.cli_data import load_data
@@ -245,9 +248,38 @@ def recordings(args: argparse.Namespace, progress: Progress) -> tuple[list, list
         f"{args.operating_points} operating points, bus-15 fault (train), bus-28 (test)..."
     )
     g = args.generator
-    data = benchmark_protocol((g,), args.operating_points, args.noise, args.seed)
     source = {"benchmark": "ieee39-psat-5.1", "generator": g}
-    return list(data.train[g]), list(data.test[g]), source
+    if jobs == 1:
+        data = benchmark_protocol((g,), args.operating_points, args.noise, args.seed)
+        return list(data.train[g]), list(data.test[g]), source
+    # the test recordings, needed at the end, simulated in a worker meanwhile (the same ones)
+    task = (g, args.operating_points, args.noise, args.seed)
+    worker = workers.start(benchmark_test, *task, on_progress=_warn_again)
+    data = benchmark_protocol((g,), args.operating_points, args.noise, args.seed, ("train",))
+    test = workers.Later(worker, lambda: benchmark_test(*task, progress=_warn_again))
+    return list(data.train[g]), test, source
+
+
+def benchmark_test(
+    generator: int, points: int, noise: float, seed: int, *, progress: Callable[[str], None]
+) -> list:
+    """The benchmark's test recordings of one generator (a worker's task): a warning, such as
+    a machine out of step, goes to ``progress``."""
+    from jaxdmd.grid import benchmark_protocol
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        data = benchmark_protocol((generator,), points, noise, seed, ("test",))
+    for w in caught:
+        progress(str(w.message))
+    return list(data.test[generator])
+
+
+def _warn_again(text: str) -> None:
+    """A worker's warning, issued here."""
+    from jaxdmd.grid.simulate import SynchronismWarning
+
+    warnings.warn(text, SynchronismWarning, stacklevel=2)
 
 
 def run_discover(args: argparse.Namespace) -> int:
@@ -265,7 +297,8 @@ def run_discover(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     config = config_from_args(args)
     proposer = proposer_from_args(args)
-    train, test, source = recordings(args, progress)  # read before anything is written
+    jobs = workers.cores() if config.jobs is None else config.jobs
+    train, test, source = recordings(args, progress, jobs)  # read before anything is written
     data_seconds = time.perf_counter() - t0
     if not args.resume:
         out.mkdir(parents=True, exist_ok=True)

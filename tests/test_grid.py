@@ -11,6 +11,7 @@ import warnings
 
 import numpy as np
 import pytest
+from jax import tree_util
 
 import jaxdmd  # noqa: F401  (enables float64)
 from jaxdmd.grid import (
@@ -269,6 +270,27 @@ def test_paper_protocol_datasets(protocol):
     # test data: the bus-28 fault, clean
     assert "fault bus 28" in test.label
     assert protocol.test_result.fault.bus == 28
+
+
+def test_the_test_part_alone_is_the_test_part_of_the_whole_protocol(protocol):
+    """``parts=("test",)`` (what the command line simulates in a worker while it simulates the
+    training part): the same operating points and recordings as the whole protocol's, bit for
+    bit, and nothing of the training part."""
+    alone = paper_protocol(
+        n_train=2, n_test=2, seed=3, noise=0.01, generators=(31, 39), parts=("test",)
+    )
+    assert alone.train == {31: [], 39: []} and alone.train_points is None
+    assert alone.train_result is None
+    points = (alone.test_points, protocol.test_points)
+    for a, b in zip(*(tree_util.tree_leaves(p) for p in points), strict=True):
+        np.testing.assert_array_equal(a, b)
+    for g in (31, 39):
+        for mine, theirs in zip(alone.test[g], protocol.test[g], strict=True):
+            assert mine.label == theirs.label and mine.names == theirs.names
+            np.testing.assert_array_equal(mine.values, theirs.values)
+            np.testing.assert_array_equal(mine.derivatives, theirs.derivatives)
+    with pytest.raises(ValueError, match="parts"):
+        paper_protocol(n_train=1, n_test=1, parts=("validation",))
 
 
 def test_simulate_cli(tmp_path):

@@ -15,6 +15,7 @@ def benchmark_protocol(
     operating_points: int = 4,
     noise: float = 0.01,
     seed: int = 0,
+    parts: Sequence[str] = ("train", "test"),
 ) -> ProtocolData:
     """The paper's protocol for the benchmark generators: noisy bus-15 training, clean bus-28
     test data, ``operating_points`` of each, from ``seed``.
@@ -24,6 +25,7 @@ def benchmark_protocol(
     keeps accelerating after the fault (D = 0, constant-impedance loads; omega reaches 1.03 pu,
     delta 60 rad), and noise of 1 % of each signal's range then buries the dynamics. The training
     derivatives are the default estimates from the noisy states (matched fitting applies).
+    ``parts``: as :func:`paper_protocol`'s (one part alone, the same recordings).
     """
     return paper_protocol(
         n_train=operating_points,
@@ -32,4 +34,5 @@ def benchmark_protocol(
         noise=noise,
         model=MachineModel(name="psat-5.1", exciter=Exciter(), governor=Governor()),
         generators=tuple(generators),
+        parts=parts,
     )

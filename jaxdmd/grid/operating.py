@@ -102,24 +102,35 @@ def load_factors(key: jax.Array, n: int, n_bus: int = 39, spread: float = 0.3) -
 
 
 def operating_points(
-    n: int, seed: int | jax.Array = 0, *, spread: float = 0.3, max_attempts: int = 5
+    n: int,
+    seed: int | jax.Array = 0,
+    *,
+    spread: float = 0.3,
+    max_attempts: int = 5,
+    first: int = 0,
 ) -> OperatingPoint:
     """``n`` random operating points, stacked along a leading axis; reproducible from ``seed``.
+
+    Point ``i`` depends on ``seed`` and ``i`` alone: ``operating_points(n, seed, first=k)`` are
+    points ``k`` to ``k + n - 1`` of any longer draw from the same seed.
 
     Args:
         n: number of operating points (>= 1).
         seed: integer seed or a JAX PRNG key.
         spread: loads vary within ``+-spread`` of nominal (0.3 in the paper).
         max_attempts: redraws allowed per point when the OPF fails.
+        first: the index of the first point.
     """
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
+    if first < 0:
+        raise ValueError(f"first must be >= 0, got {first}")
     if not 0.0 <= spread < 1.0:
         raise ValueError(f"spread must be in [0, 1), got {spread}")
     case = case39()
     key = jax.random.key(seed) if isinstance(seed, int) else seed
     points = []
-    for i in range(n):
+    for i in range(first, first + n):
         for attempt in range(max_attempts):
             k = jax.random.fold_in(jax.random.fold_in(key, i), attempt)
             f = np.asarray(load_factors(k, 1, case.n_bus, spread)[0])

@@ -113,8 +113,8 @@ class ProtocolData:
         test: clean bus-28-fault datasets with exact derivatives.
         train_clean: the training runs without noise, with exact derivatives.
         train_exact_derivatives: exact state derivatives of the training runs (dicts).
-        train_points, test_points: the operating points (stacked).
-        train_result, test_result: the raw batched simulations.
+        train_points, test_points: the operating points (stacked; None for a part not made).
+        train_result, test_result: the raw batched simulations (None for a part not made).
         out_of_step: ``{"train": [...], "test": [...]}``, per run the generators (bus numbers)
             that lose synchronism (see :func:`jaxdmd.grid.simulate.out_of_step`); empty tuples
             for a stable run. :func:`paper_protocol` warns when any is not empty.
@@ -124,10 +124,10 @@ class ProtocolData:
     test: dict[int, list]
     train_clean: dict[int, list]
     train_exact_derivatives: dict[int, list[dict[str, np.ndarray]]]
-    train_points: OperatingPoint
-    test_points: OperatingPoint
-    train_result: SimResult
-    test_result: SimResult
+    train_points: OperatingPoint | None
+    test_points: OperatingPoint | None
+    train_result: SimResult | None
+    test_result: SimResult | None
     config: dict = field(default_factory=dict)
     out_of_step: dict[str, list[tuple[int, ...]]] = field(default_factory=dict)
 
@@ -167,6 +167,7 @@ def paper_protocol(
     t_end: float = 10.0,
     dt: float = 0.01,
     settings: SolverSettings = DEFAULT_SETTINGS,
+    parts: Sequence[str] = ("train", "test"),
 ) -> ProtocolData:
     """The paper's experiment in one call.
 
@@ -180,6 +181,9 @@ def paper_protocol(
 
     Args:
         generators: generator buses to return (default all ten, 30..39).
+        parts: ``("train",)`` or ``("test",)`` computes that part alone (the other's lists are
+            empty, its points and result None): the same recordings as both together, since
+            every operating point and noise draw depends on the seed and its index alone.
     """
     case = case39()
     gens = tuple(case.gen_bus_numbers if generators is None else (int(g) for g in generators))
@@ -187,28 +191,37 @@ def paper_protocol(
         case.gen_index(gb)
     if n_train < 1 or n_test < 0:
         raise ValueError(f"need n_train >= 1 and n_test >= 0, got {n_train}, {n_test}")
+    if not parts or set(parts) - {"train", "test"}:
+        raise ValueError(f"parts must be 'train' and/or 'test', got {tuple(parts)}")
     model = as_model(model)
     tf = train_fault if isinstance(train_fault, Fault) else Fault(bus=int(train_fault))
     sf = test_fault if isinstance(test_fault, Fault) else Fault(bus=int(test_fault))
-    ops = operating_points(n_train + n_test, seed, spread=spread)
-    train_ops = ops[:n_train]
-    test_ops = ops[n_train:]
+    n_train_here = n_train if "train" in parts else 0
+    n_test_here = n_test if "test" in parts else 0
     kw = dict(t_end=t_end, dt=dt, settings=settings)
-    r_train = simulate_each(train_ops, model, tf, warn=False, **kw)
-    r_test = simulate_each(test_ops, model, sf, warn=False, **kw) if n_test else None
-    slipped = {"train": out_of_step(r_train), "test": out_of_step(r_test) if n_test else []}
+    train_ops = r_train = test_ops = r_test = None
+    if n_train_here:
+        train_ops = operating_points(n_train, seed, spread=spread)
+        r_train = simulate_each(train_ops, model, tf, warn=False, **kw)
+    if n_test_here:
+        test_ops = operating_points(n_test, seed, spread=spread, first=n_train)
+        r_test = simulate_each(test_ops, model, sf, warn=False, **kw)
+    slipped = {
+        "train": out_of_step(r_train) if n_train_here else [],
+        "test": out_of_step(r_test) if n_test_here else [],
+    }
     warn_out_of_step(
         [*slipped["train"], *slipped["test"]],
         [
-            *(f"train point {i} (seed {seed}, fault bus {tf.bus})" for i in range(n_train)),
-            *(f"test point {i} (seed {seed}, fault bus {sf.bus})" for i in range(n_test)),
+            *(f"train point {i} (seed {seed}, fault bus {tf.bus})" for i in range(n_train_here)),
+            *(f"test point {i} (seed {seed}, fault bus {sf.bus})" for i in range(n_test_here)),
         ],
     )
     noise_key = jax.random.fold_in(jax.random.key(seed), 0x5EED)
     train, clean, exact, test = {}, {}, {}, {}
     for gb in gens:
         train[gb], clean[gb], exact[gb], test[gb] = [], [], [], []
-        for i in range(n_train):
+        for i in range(n_train_here):
             lab = f"case39 gen {gb}, {model.name}, fault bus {tf.bus}, train point {i}"
             k = jax.random.fold_in(jax.random.fold_in(noise_key, i), gb)
             clean[gb].append(generator_dataset(r_train, gb, i, label=lab))
@@ -218,7 +231,7 @@ def paper_protocol(
                 if noise > 0
                 else clean[gb][-1]
             )
-        for i in range(n_test):
+        for i in range(n_test_here):
             lab = f"case39 gen {gb}, {model.name}, fault bus {sf.bus}, test point {i}"
             test[gb].append(generator_dataset(r_test, gb, i, label=lab))
     config = dict(
