@@ -812,7 +812,8 @@ def discover(
         # every algebraic equation's samples weighted by its error variance in their recording
         # (estimated from the loop's choice): what follows fits on the reweighted problem
         weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
-        ae_selection = None
+        weights = weighted.problem.weights if recording_weights else None
+        ae_selection = refits_ahead = None
         fit_choice = ae
         if config.selection is not None:
             start = time.perf_counter()
@@ -825,7 +826,13 @@ def discover(
                 observer.message(
                     "AE equations chosen by simulation: " + ", ".join(ae_selection["changed"])  # type: ignore[arg-type]
                 )
-            # the state equations chosen again, closed by the algebraic ones
+            # the state equations chosen again, closed by the algebraic ones; with a second
+            # core, the AE refits below start beside it in a worker for the state equations as
+            # they are now, and are used if the closed selection keeps them
+            if fine and config.ae_joint and jobs > 1:
+                observer.message(_JOINT_MESSAGE)
+                task = (refit_algebraic, de, ae, train, estimates, weights, config)
+                refits_ahead = (de, workers.start(*task))
             start = time.perf_counter()
             starts = [front_lines(selection or {}, t) for t in de.contract.targets]
             de, closed = select_states_closed(
@@ -853,25 +860,27 @@ def discover(
             worker = workers.start(refit_task, de, fit_choice, train, regressors, config.selection)
             ahead["fit choice"] = worker.result
         bias_report = joint_report = None
-        if estimates is not None and config.ae_bias_correction:
+        if estimates is not None:
             start = time.perf_counter()
-            compensated, bias_report = refit_bias_compensated(
-                ae, estimates, weighted.problem.weights if recording_weights else None
-            )
-            ae = judge.better(ae, compensated, bias_report, de=de)  # type: ignore[arg-type]
+            refitted_here = False
+            if refits_ahead is not None and refits_ahead[0] == de:
+                try:
+                    ae, bias_report, joint_report = refits_ahead[1].result()
+                except workers.WorkerError as err:
+                    observer.message(f"the AE refits' worker failed; they run here ({err})")
+                    refitted_here = True
+            else:
+                if refits_ahead is not None:  # started for state equations that then changed
+                    refits_ahead[1].stop()
+                elif fine and config.ae_joint:
+                    observer.message(_JOINT_MESSAGE)
+                refitted_here = True
+            if refitted_here:
+                with workers.one_blas_thread():  # as in the worker: the same refits either way
+                    ae, bias_report, joint_report = refit_algebraic(
+                        de, ae, train, estimates, weights, config
+                    )
             ae_seconds += time.perf_counter() - start
-        if fine and config.ae_joint:
-            start = time.perf_counter()
-            observer.message("AE refit: maximum likelihood with the states unknown ...")
-            try:
-                refitted, joint_report = refit_joint(
-                    de, ae, train, estimates, max_steps=config.ae_joint_steps
-                )
-                ae = judge.better(ae, refitted, joint_report, de=de)
-            except (ValueError, np.linalg.LinAlgError) as err:
-                joint_report = {"kept": f"the joint refit failed: {err}"}
-            joint_report["seconds"] = time.perf_counter() - start
-            ae_seconds += joint_report["seconds"]
         simulation_report = None
         if config.selection is not None:
             held = "recordings" if len(train) > 1 else "time blocks"
@@ -972,6 +981,44 @@ class Judge:
             return after
         report["kept"] = "the refit simulates the training recordings worse"
         return before
+
+
+_JOINT_MESSAGE = "AE refit: maximum likelihood with the states unknown ..."
+
+
+def refit_algebraic(
+    de: Equations,
+    ae: Equations,
+    train: Sequence[Dataset],
+    estimates: Sequence[StateEstimate],
+    weights: Any,
+    config: DiscoveryConfig,
+    *,
+    progress: Callable[[Any], None] | None = None,
+) -> tuple[Equations, dict[str, Any] | None, dict[str, Any] | None]:
+    """The AE equations refitted on the estimated states, each refit kept only if the model
+    then simulates the training recordings no worse (:class:`Judge`): bias-compensated least
+    squares (``config.ae_bias_correction``; ``weights``: the problem's sample weights, None for
+    none), then, with model-estimated states, maximum likelihood with the states unknown
+    (``config.ae_joint``). What :func:`discover` runs once the state equations are chosen, here
+    or in a worker process (``progress`` unused: the task signature of
+    :mod:`jaxdmd.workers`). Returns the equations and the two refits' reports (None: not run)."""
+    judge = Judge(train, config.selection)
+    bias_report = joint_report = None
+    if config.ae_bias_correction:
+        compensated, bias_report = refit_bias_compensated(ae, estimates, weights)
+        ae = judge.better(ae, compensated, bias_report, de=de)
+    if estimates[0].from_model and config.ae_joint:
+        start = time.perf_counter()
+        try:
+            refitted, joint_report = refit_joint(
+                de, ae, train, estimates, max_steps=config.ae_joint_steps
+            )
+            ae = judge.better(ae, refitted, joint_report, de=de)
+        except (ValueError, np.linalg.LinAlgError) as err:
+            joint_report = {"kept": f"the joint refit failed: {err}"}
+        joint_report["seconds"] = time.perf_counter() - start
+    return ae, bias_report, joint_report
 
 
 def _ae_regressors(

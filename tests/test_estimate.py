@@ -228,3 +228,27 @@ def test_the_likelihood_without_the_smoother_is_the_filters_with_its_gradient():
     assert np.isfinite(float(alone[0]))
     np.testing.assert_allclose(float(alone[0]), float(full[0]), rtol=1e-13)
     np.testing.assert_allclose(np.asarray(alone[1]), np.asarray(full[1]), rtol=1e-9)
+
+
+def test_the_ae_refits_in_a_worker_process_are_the_refits_here():
+    """discover starts the AE equations' refits (bias-compensated, then maximum likelihood with
+    the states unknown) in a worker process beside the closed selection of the state equations,
+    and uses them if that selection keeps the state equations: they must be the refits it would
+    run here afterwards, to the last bit, reports included (times aside)."""
+    from jaxdmd import workers
+    from jaxdmd.pipeline import DiscoveryConfig, refit_algebraic
+    from jaxdmd.refine import model_states
+
+    recordings, de, contract = _sine_measured(noise=0.03)
+    estimates = model_states(de, recordings)
+    start = Equations(contract, SINE, (1.9,), (0.0,), 0.0)
+    config = DiscoveryConfig(ae_joint_steps=300)
+    task = (refit_algebraic, de, start, recordings, estimates, None, config)
+    worker = workers.start(*task)
+    here = refit_algebraic(*task[1:])
+    away = worker.result()
+    for refits in (here, away):
+        assert refits[2].pop("seconds") > 0
+    assert away[0] == here[0]
+    assert repr(away[1:]) == repr(here[1:])
+    assert here[0].params[0] == pytest.approx(2.0, rel=0.002)  # the joint refit ran and kept
