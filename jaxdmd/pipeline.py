@@ -862,24 +862,14 @@ def discover(
         bias_report = joint_report = None
         if estimates is not None:
             start = time.perf_counter()
-            refitted_here = False
-            if refits_ahead is not None and refits_ahead[0] == de:
-                try:
-                    ae, bias_report, joint_report = refits_ahead[1].result()
-                except workers.WorkerError as err:
-                    observer.message(f"the AE refits' worker failed; they run here ({err})")
-                    refitted_here = True
-            else:
-                if refits_ahead is not None:  # started for state equations that then changed
-                    refits_ahead[1].stop()
-                elif fine and config.ae_joint:
-                    observer.message(_JOINT_MESSAGE)
-                refitted_here = True
-            if refitted_here:
+            if refits_ahead is None and fine and config.ae_joint:
+                observer.message(_JOINT_MESSAGE)
+
+            def refit_here() -> tuple[Equations, Any, Any]:
                 with workers.one_blas_thread():  # as in the worker: the same refits either way
-                    ae, bias_report, joint_report = refit_algebraic(
-                        de, ae, train, estimates, weights, config
-                    )
+                    return refit_algebraic(de, ae, train, estimates, weights, config)
+
+            ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
         simulation_report = None
         if config.selection is not None:
@@ -984,6 +974,25 @@ class Judge:
 
 
 _JOINT_MESSAGE = "AE refit: maximum likelihood with the states unknown ..."
+
+
+def _ahead_or_here(
+    ahead: tuple[Equations, workers.Worker] | None,
+    de: Equations,
+    here: Callable[[], Any],
+    observer: Observer,
+) -> Any:
+    """The result of work started ahead in a worker for the state equations ``ahead[0]``, if
+    they are still ``de`` and the worker did not fail (said with a message); else ``here()``,
+    the same work run here. A worker whose result is of no use is stopped."""
+    if ahead is not None and ahead[0] == de:
+        try:
+            return ahead[1].result()
+        except workers.WorkerError as err:
+            observer.message(f"a worker failed ({err}); its work runs here")
+    elif ahead is not None:  # started for state equations that the selection then changed
+        ahead[1].stop()
+    return here()
 
 
 def refit_algebraic(

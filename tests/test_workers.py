@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxdmd
-from jaxdmd import workers
+from jaxdmd import search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.pipeline import DiscoveryConfig
 from jaxdmd.search import SearchConfig
@@ -129,3 +129,44 @@ def test_a_later_sequence_is_the_workers_result_or_if_it_failed_the_fallbacks():
 def test_jobs_must_be_positive():
     with pytest.raises(ValueError, match="jobs"):
         DiscoveryConfig(jobs=0)
+
+
+def test_work_started_ahead_is_used_only_for_the_state_equations_it_was_started_for():
+    """discover starts the AE refits in a worker before the closed selection has chosen the
+    state equations: the worker's result is used when they stay as they were, the work runs
+    here (and the worker is stopped) when they changed, and here (with a message) when the
+    worker failed."""
+    from jaxdmd.pipeline import _ahead_or_here
+    from jaxdmd.prompts import Contract, Variable
+
+    contract = Contract(loop="DE", targets=("x",), states=(Variable("x", "state"),))
+    source = "def equation(x, p):\n    dx_ = p[0] * x\n    return dx_\n"
+    de = search.Equations(contract, source, (-1.0,), (0.0,), 0.0)
+    changed = dataclasses.replace(de, params=(-1.5,))
+
+    class Messages:
+        def __init__(self):
+            self.texts = []
+
+        def message(self, text):
+            self.texts.append(text)
+
+    def here():
+        return "here"
+
+    observer = Messages()
+    same = workers.start(_items, 2)
+    assert _ahead_or_here((dataclasses.replace(de), same), de, here, observer) == [0, 1]
+    slow = workers.start(_sleep, 60.0)
+    assert _ahead_or_here((de, slow), changed, here, observer) == "here"
+    with pytest.raises(workers.WorkerError):  # stopped, not waited for
+        slow.result()
+    assert _ahead_or_here(None, de, here, observer) == "here" and not observer.texts
+    assert _ahead_or_here((de, workers.start(_die, 3)), de, here, observer) == "here"
+    assert observer.texts and "exit status 3" in observer.texts[0]
+
+
+def _sleep(seconds: float, *, progress) -> None:
+    import time
+
+    time.sleep(seconds)
