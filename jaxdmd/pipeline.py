@@ -121,11 +121,12 @@ class DiscoveryConfig:
             their archives are pooled for the final choice, and each chosen term's share of
             the searches whose own final equations hold it is reported (the structure must not
             be an accident of one search path).
-        jobs: how many of those searches run at once, each in its own process
-            (:mod:`jaxdmd.workers`); None: as many as this process has cores. Each search's
-            archive is the same to the last bit however many run at once. Only the built-in
-            offline proposer searches in other processes (a language model's proposer is one
-            object that every loop shares).
+        jobs: how many processes discovery keeps busy at once (:mod:`jaxdmd.workers`; None:
+            as many as this process has cores): the searches side by side, and beside the
+            closed selection and the joint refit the refits that need neither. Each result is
+            the same to the last bit however many run at once. Only the built-in offline
+            proposer searches in other processes (a language model's proposer is one object
+            that every loop shares).
         selection: how the final state equations are chosen among the archive's alternatives
             by how they simulate the training recordings (:mod:`jaxdmd.select`); None keeps
             the choice by cross-validated derivative error alone.
@@ -162,6 +163,11 @@ class DiscoveryConfig:
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"{name} must be positive or None, got {value}")
+
+    @property
+    def processes(self) -> int:
+        """``jobs``, or the cores this process may use when it is None."""
+        return workers.cores() if self.jobs is None else self.jobs
 
     @property
     def matched(self) -> bool:
@@ -729,7 +735,7 @@ def discover(
     )
     keys = [de_key, *(jax.random.fold_in(de_key, 100 + i) for i in range(1, config.searches))]
     names = ["DE" if i == 0 else f"DE{i + 1}" for i in range(config.searches)]
-    jobs = workers.cores() if config.jobs is None else config.jobs
+    jobs = config.processes
     with workers.one_blas_thread():  # as in the worker processes: the same archives anywhere
         if jobs > 1 and len(keys) > 1 and isinstance(factory, OfflineFactory):
             de_states = _searches_side_by_side(

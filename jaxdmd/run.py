@@ -297,8 +297,7 @@ def run_discover(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     config = config_from_args(args)
     proposer = proposer_from_args(args)
-    jobs = workers.cores() if config.jobs is None else config.jobs
-    train, test, source = recordings(args, progress, jobs)  # read before anything is written
+    train, test, source = recordings(args, progress, config.processes)  # read before writing
     data_seconds = time.perf_counter() - t0
     if not args.resume:
         out.mkdir(parents=True, exist_ok=True)
