@@ -12,10 +12,12 @@ Only sources that passed :func:`jaxdmd.skeleton.check` are handed here; nothing 
 from __future__ import annotations
 
 import ast
-import copy
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
+
+_Tree = TypeVar("_Tree", bound="ast.AST | list")
 
 
 @dataclass(frozen=True)
@@ -25,8 +27,8 @@ class Line:
     expr: ast.expr
     n_params: int
 
-    @property
-    def text(self) -> str:
+    @functools.cached_property
+    def text(self) -> str:  # once per line: a line's expression is never changed in place
         return ast.unparse(self.expr)
 
     def variables(self) -> frozenset[str]:
@@ -53,13 +55,26 @@ def param_indices(node: ast.AST) -> list[int]:
     return [i for i in map(param_index, ast.walk(node)) if i is not None]
 
 
+def copy_tree(node: _Tree) -> _Tree:
+    """A deep copy of a syntax tree (or a list of them): what :func:`copy.deepcopy` gives,
+    about four times faster on an equation's tree (a tree holds only nodes, lists and
+    immutable values, so nothing else needs copying or a memo of what was copied)."""
+    if isinstance(node, ast.AST):
+        new = node.__class__.__new__(node.__class__)
+        fields = new.__dict__
+        for name, value in node.__dict__.items():
+            fields[name] = copy_tree(value) if isinstance(value, (ast.AST, list)) else value
+        return new  # type: ignore[return-value]
+    return [copy_tree(x) if isinstance(x, (ast.AST, list)) else x for x in node]  # type: ignore[return-value,union-attr]
+
+
 class _Inline(ast.NodeTransformer):
     def __init__(self, env: dict[str, ast.expr]):
         self.env = env
 
     def visit_Name(self, node: ast.Name) -> ast.expr:
         if node.id in self.env:
-            return copy.deepcopy(self.env[node.id])
+            return copy_tree(self.env[node.id])
         return node
 
 
@@ -107,7 +122,7 @@ def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], .
     outputs: list[ast.expr] = []
     for stmt in fn.body:
         if isinstance(stmt, ast.Assign):
-            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            value = _Inline(env).visit(copy_tree(stmt.value))
             for target in stmt.targets:
                 if isinstance(target, ast.Name):
                     env[target.id] = value
@@ -119,10 +134,10 @@ def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], .
                     raise ValueError(f"cannot split assignment: {ast.unparse(stmt)}")
         elif isinstance(stmt, ast.AugAssign) and isinstance(stmt.target, ast.Name):
             current = env.get(stmt.target.id, ast.Name(stmt.target.id, ast.Load()))
-            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            value = _Inline(env).visit(copy_tree(stmt.value))
             env[stmt.target.id] = ast.BinOp(left=current, op=stmt.op, right=value)
         elif isinstance(stmt, ast.Return) and stmt.value is not None:
-            value = _Inline(env).visit(copy.deepcopy(stmt.value))
+            value = _Inline(env).visit(copy_tree(stmt.value))
             outputs = list(value.elts) if isinstance(value, ast.Tuple) else [value]
         elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
             continue  # docstring
@@ -131,7 +146,7 @@ def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], .
     lines, mappings = [], []
     for expr in outputs:
         renumber = _Renumber()
-        new = renumber.visit(copy.deepcopy(expr))
+        new = renumber.visit(copy_tree(expr))
         ast.fix_missing_locations(new)
         lines.append(Line(new, len(renumber.mapping)))
         mappings.append(tuple(renumber.mapping))
@@ -149,7 +164,7 @@ def assemble(
     body: list[str] = []
     for out, line in zip(outputs, lines, strict=True):
         renumber = _Renumber(offset)
-        expr = renumber.visit(copy.deepcopy(line.expr))
+        expr = renumber.visit(copy_tree(line.expr))
         # keep every parameter slot of the line even if the renumbering saw fewer
         offset += max(line.n_params, len(renumber.mapping))
         body.append(f"    {out} = {ast.unparse(ast.fix_missing_locations(expr))}")
@@ -186,7 +201,7 @@ def without_each_summand(line: Line) -> list[Line]:
     for k in range(len(parts)):
         if not params[k]:
             continue
-        rest = [copy.deepcopy(s) for i, s in enumerate(parts) if i != k]
+        rest = [copy_tree(s) for i, s in enumerate(parts) if i != k]
         expr = rest[0]
         for s in rest[1:]:
             expr = ast.BinOp(left=expr, op=ast.Add(), right=s)
@@ -205,7 +220,7 @@ def simple_summands(line: Line) -> list[Line]:
         if len(param_indices(s)) != 1:
             continue
         renumber = _Renumber()
-        expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(s)))
+        expr = ast.fix_missing_locations(renumber.visit(copy_tree(s)))
         out.append(Line(expr, 1))
     return out
 
@@ -213,8 +228,8 @@ def simple_summands(line: Line) -> list[Line]:
 def with_summand(line: Line, term: Line) -> Line:
     """``line + term``, the term's parameters numbered after the line's."""
     renumber = _Renumber(line.n_params)
-    extra = renumber.visit(copy.deepcopy(term.expr))
-    expr = ast.BinOp(left=copy.deepcopy(line.expr), op=ast.Add(), right=extra)
+    extra = renumber.visit(copy_tree(term.expr))
+    expr = ast.BinOp(left=copy_tree(line.expr), op=ast.Add(), right=extra)
     return Line(ast.fix_missing_locations(expr), line.n_params + len(renumber.mapping))
 
 
@@ -222,13 +237,13 @@ def renumbered(line: Line) -> Line:
     """``line`` with its parameters numbered in order of appearance, as :func:`assemble` numbers
     them (so parameters fitted to a skeleton assembled from the line are in the line's order)."""
     renumber = _Renumber()
-    expr = ast.fix_missing_locations(renumber.visit(copy.deepcopy(line.expr)))
+    expr = ast.fix_missing_locations(renumber.visit(copy_tree(line.expr)))
     return Line(expr, max(line.n_params, len(renumber.mapping)))
 
 
 def inlined(expr: ast.expr, env: dict[str, ast.expr]) -> ast.expr:
     """``expr`` with each name of ``env`` replaced by (a copy of) its expression."""
-    return ast.fix_missing_locations(_Inline(env).visit(copy.deepcopy(expr)))
+    return ast.fix_missing_locations(_Inline(env).visit(copy_tree(expr)))
 
 
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:
@@ -248,5 +263,5 @@ def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) 
                 return ast.Constant(float(f"{node.value:.{digits}g}"))
             return node
 
-    new = _Sub().visit(copy.deepcopy(expr))
+    new = _Sub().visit(copy_tree(expr))
     return ast.unparse(ast.fix_missing_locations(new))

@@ -76,7 +76,6 @@ uncertain by about +-40 %.
 from __future__ import annotations
 
 import ast
-import copy
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
@@ -101,6 +100,7 @@ __all__ = [
     "expand",
     "line_covariance",
     "physical_parameters",
+    "section",
     "with_section",
 ]
 
@@ -139,7 +139,7 @@ class _Canon(ast.NodeTransformer):
 
 
 def _atom(node: ast.expr) -> str:
-    return ast.unparse(ast.fix_missing_locations(_Canon().visit(copy.deepcopy(node))))
+    return ast.unparse(ast.fix_missing_locations(_Canon().visit(ln.copy_tree(node))))
 
 
 def _mul(a: list[_Term], b: list[_Term]) -> list[_Term]:
@@ -872,23 +872,43 @@ def physical_parameters(
 
 
 def discovery_section(discovery: Any) -> tuple[str, dict[str, Any]]:
-    """The physical-parameter section of a :class:`jaxdmd.pipeline.Discovery`: Markdown for the
-    top of ``equations.md`` and the JSON-ready dict for ``summary.json``. Standard errors use
-    the loops' final search states' problems when they are known. Never raises: a failure is
-    reported in the section."""
+    """The physical-parameter section of a :class:`jaxdmd.pipeline.Discovery` (:func:`section`
+    of its equations; standard errors from the loops' final search states' problems when they
+    are known). Never raises: a failure is reported in the section."""
     try:
         de_state = getattr(discovery, "de_state", None)
         ae_state = getattr(discovery, "ae_state", None)
-        rep = physical_parameters(
-            discovery.de,
-            discovery.ae,
-            de_state.problem if de_state is not None else None,
-            ae_state.problem if ae_state is not None else None,
-        )
+        de, ae = discovery.de, discovery.ae
+    except Exception as err:  # a report must not stop the pipeline
+        return _failed(err)
+    return section(
+        de,
+        ae,
+        de_state.problem if de_state is not None else None,
+        ae_state.problem if ae_state is not None else None,
+    )
+
+
+def section(
+    de: Equations,
+    ae: Equations | None = None,
+    de_problem: Problem | None = None,
+    ae_problem: Problem | None = None,
+) -> tuple[str, dict[str, Any]]:
+    """The physical-parameter section of discovered equations: Markdown for the top of
+    ``equations.md`` and the JSON-ready dict for ``summary.json``
+    (:func:`physical_parameters`; the problems, when given, for standard errors). Never raises:
+    a failure is reported in the section."""
+    try:
+        rep = physical_parameters(de, ae, de_problem, ae_problem)
         return rep.markdown(), rep.to_dict()
     except Exception as err:  # a report must not stop the pipeline
-        text = f"could not map physical parameters: {type(err).__name__}: {err}"
-        return f"## Physical parameters\n\n{text}\n", {"family": None, "error": text}
+        return _failed(err)
+
+
+def _failed(err: Exception) -> tuple[str, dict[str, Any]]:
+    text = f"could not map physical parameters: {type(err).__name__}: {err}"
+    return f"## Physical parameters\n\n{text}\n", {"family": None, "error": text}
 
 
 def with_section(markdown: str, section: str) -> str:

@@ -23,6 +23,7 @@ progress and writes files; ``benchmarks/table1.py`` calls :func:`discover` as an
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import threading
@@ -329,10 +330,12 @@ class _Locked:
 
 def _search_task(
     problem: Problem, contract: Contract, key_data: np.ndarray, config: SearchConfig,
-    checkpoint: Path | None, factory: ProposerFactory, *, progress: Callable[[Any], None],
-) -> dict[str, object]:  # fmt: skip
+    checkpoint: Path | None, factory: ProposerFactory, floor: float, *,
+    progress: Callable[[Any], None],
+) -> tuple[dict[str, object], Equations]:  # fmt: skip
     """One DE search in a worker process (:func:`jaxdmd.workers.start`): its state after each
-    round goes back as progress (and to ``checkpoint``), its final state as the result."""
+    round goes back as progress (and to ``checkpoint``); the result is its final state and its
+    own choice (:func:`jaxdmd.search.final_equations` with ``floor``)."""
     key = jax.random.wrap_key_data(jax.numpy.asarray(key_data))
     state = resume_or_init(problem, contract, key, config, checkpoint)
     progress(("started", search.state_to_dict(state)))
@@ -342,7 +345,16 @@ def _search_task(
         on_round=lambda s, r: progress(("round", search.state_to_dict(s), r)),
         checkpoint=checkpoint,
     )
-    return search.state_to_dict(state)
+    return search.state_to_dict(state), search.final_equations(state, floor=floor)
+
+
+def _choice_task(
+    state: dict[str, object], problem: Problem, config: SearchConfig, floor: float, *,
+    progress: Callable[[Any], None],
+) -> Equations:  # fmt: skip
+    """A finished search's own choice (:func:`jaxdmd.search.final_equations` with ``floor``)
+    in a worker process, from its state as :func:`jaxdmd.search.state_to_dict` wrote it."""
+    return search.final_equations(search.state_from_dict(state, problem, config), floor=floor)
 
 
 def _finished(checkpoint: Path | None) -> bool:
@@ -356,12 +368,15 @@ def _finished(checkpoint: Path | None) -> bool:
 def _searches_side_by_side(
     names: Sequence[str], keys: Sequence[jax.Array], problem: Problem, contract: Contract,
     config: SearchConfig, factory: ProposerFactory, folder: Path | None, observer: Observer,
-    label: str, jobs: int, here: Callable[[str, jax.Array], SearchState],
-) -> list[SearchState]:  # fmt: skip
+    label: str, jobs: int, here: Callable[[str, jax.Array], SearchState], floor: float,
+) -> tuple[list[SearchState], list[Equations]]:  # fmt: skip
     """The searches ``names`` (PRNG ``keys``) at most ``jobs`` at once: the first here
     (``here(name, key)``), ``jobs - 1`` of the others in worker processes, and those left
     here after the first. Their rounds are shown as they come; a search whose worker fails
-    runs here afterwards, from its checkpoint."""
+    runs here afterwards, from its checkpoint. Returns their final states and each one's own
+    choice (:func:`jaxdmd.search.final_equations` with ``floor``), made where the search ran;
+    that of a search run here while another is still to run here is made meanwhile in a worker
+    (whose core the workers' searches have left free by then)."""
 
     def checkpoint(name: str) -> Path | None:
         return None if folder is None else folder / f"{name.lower()}_state.json"
@@ -376,27 +391,45 @@ def _searches_side_by_side(
 
         return progress
 
+    def choose(state: SearchState) -> Equations:
+        return search.final_equations(state, floor=floor)
+
     away = [i for i in range(1, len(names)) if not _finished(checkpoint(names[i]))][: jobs - 1]
     running: dict[int, workers.Worker] = {}
+    choosing: dict[int, workers.Worker] = {}
     states: dict[int, SearchState] = {}
+    choices: dict[int, Equations] = {}
     try:
         for i in away:
             running[i] = workers.start(
                 _search_task, problem, contract, np.asarray(jax.random.key_data(keys[i])),
-                config, checkpoint(names[i]), factory, on_progress=show(names[i]),
+                config, checkpoint(names[i]), factory, floor, on_progress=show(names[i]),
             )  # fmt: skip
-        for i in (i for i in range(len(names)) if i not in running):
+        local = [i for i in range(len(names)) if i not in running]
+        for n, i in enumerate(local):
             states[i] = here(names[i], keys[i])
+            if n + 1 < len(local):
+                task = (search.state_to_dict(states[i]), problem, config, floor)
+                choosing[i] = workers.start(_choice_task, *task)
+            else:
+                choices[i] = choose(states[i])
         for i, worker in running.items():
             try:
-                states[i] = search.state_from_dict(worker.result(), problem, config)
+                state, choices[i] = worker.result()
+                states[i] = search.state_from_dict(state, problem, config)
             except workers.WorkerError as err:
                 observer.message(f"{names[i]}: its worker process failed ({err}); run here")
                 states[i] = here(names[i], keys[i])
+                choices[i] = choose(states[i])
+        for i, worker in choosing.items():
+            try:
+                choices[i] = worker.result()
+            except workers.WorkerError:  # made here instead: the same choice
+                choices[i] = choose(states[i])
     finally:
-        for worker in running.values():
+        for worker in (*running.values(), *choosing.values()):
             worker.stop()
-    return [states[i] for i in range(len(names))]
+    return [states[i] for i in range(len(names))], [choices[i] for i in range(len(names))]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -414,6 +447,9 @@ class Discovery:
         de_state, ae_state: the loops' final search states (None for a loaded model).
         report: per step, what was done (``"de"``, ``"ae"``: rounds, refits, state estimates,
             wall times; ``"ae_skipped"``; ``"llm"``); the JSON-ready part of ``summary.json``.
+        physical: the physical-parameter section (:func:`jaxdmd.physical.discovery_section`:
+            Markdown and its dict) when :func:`discover` made it ahead; else :meth:`save`
+            makes it.
     """
 
     de: Equations
@@ -421,6 +457,7 @@ class Discovery:
     de_state: SearchState | None = None
     ae_state: SearchState | None = None
     report: Mapping[str, Any] = field(default_factory=dict)
+    physical: tuple[str, dict[str, Any]] | None = None
 
     def simulate(self, recording: Dataset, mode: Literal["dae", "de"] = "dae"):
         """Roll the model out on ``recording`` (:func:`jaxdmd.rollout.rollout`): from its first
@@ -498,7 +535,7 @@ class Discovery:
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         (out / "model.py").write_text(self.module_source())
-        section, parameters = physical.discovery_section(self)
+        section, parameters = self.physical or physical.discovery_section(self)
         (out / "equations.md").write_text(
             physical.with_section(report.equations_markdown(self), section)
         )
@@ -736,23 +773,23 @@ def discover(
     keys = [de_key, *(jax.random.fold_in(de_key, 100 + i) for i in range(1, config.searches))]
     names = ["DE" if i == 0 else f"DE{i + 1}" for i in range(config.searches)]
     jobs = config.processes
+    # NMSEs of the integral form lie far below the derivatives': no absolute floor there
+    floor = 0.0 if integral else 1e-4
     with workers.one_blas_thread():  # as in the worker processes: the same archives anywhere
         if jobs > 1 and len(keys) > 1 and isinstance(factory, OfflineFactory):
-            de_states = _searches_side_by_side(
+            de_states, per_search = _searches_side_by_side(
                 names, keys, de_problem_, de_contract, config.de_search(), factory, folder,
                 observer, label, jobs, lambda name, key: run(
                     name, de_problem_, de_contract, key, config.de_search()
-                ),
+                ), floor,
             )  # fmt: skip
         else:
             de_states = [
                 run(name, de_problem_, de_contract, k, config.de_search())
                 for name, k in zip(names, keys, strict=True)
             ]
-    # NMSEs of the integral form lie far below the derivatives': no absolute floor there
-    floor = 0.0 if integral else 1e-4
+            per_search = [search.final_equations(s, floor=floor) for s in de_states]
     de_state = pool(de_states)
-    per_search = [search.final_equations(s, floor=floor) for s in de_states]
     if len(de_states) > 1:  # the pool's choice; each search's own choice is a candidate
         de = search.final_equations(de_state, floor=floor, include=per_search)
     else:
@@ -927,11 +964,29 @@ def discover(
     if stats is not None:
         report["llm"] = stats()
     report["wall_time_s"] = de_seconds + ae_seconds
+    # with a second core and held-out recordings, the physical-parameter section (for save) is
+    # made in a worker meanwhile: the held-out rollouts run here, where their compiled programs
+    # serve the caller's plots
+    problems = (de_state.problem, None if ae_state is None else ae_state.problem)
+    physical = workers.start(_physical_task, de, ae, *problems) if jobs > 1 and test else None
     result = Discovery(de=de, ae=ae, de_state=de_state, ae_state=ae_state, report=report)
     report["modes"] = _modes(result, regressors)
     if test:
         report["test"] = result.held_out(test)
+    if physical is not None:
+        with contextlib.suppress(workers.WorkerError):  # if it failed, save() makes it here
+            result = dataclasses.replace(result, physical=physical.result())
     return result
+
+
+def _physical_task(
+    de: Equations, ae: Equations | None, de_problem: Problem, ae_problem: Problem | None, *,
+    progress: Callable[[Any], None],
+) -> tuple[str, dict[str, Any]]:  # fmt: skip
+    """The physical-parameter section (:func:`jaxdmd.physical.section`) in a worker process."""
+    from jaxdmd import physical
+
+    return physical.section(de, ae, de_problem, ae_problem)
 
 
 def _modes(model: Discovery, recordings: Sequence[Dataset]) -> list[dict[str, Any]]:

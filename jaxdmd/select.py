@@ -55,8 +55,8 @@ report says what was held out (``held_out``: ``"recordings"`` or ``"time blocks 
 from __future__ import annotations
 
 import ast
-import copy
 import dataclasses
+import functools
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -421,7 +421,7 @@ class _Rename(ast.NodeTransformer):
 
 
 def _renamed(line: ln.Line, old: str, new: str) -> ln.Line:
-    expr = _Rename(old, new).visit(copy.deepcopy(line.expr))
+    expr = _Rename(old, new).visit(ln.copy_tree(line.expr))
     return ln.Line(ast.fix_missing_locations(expr), line.n_params)
 
 
@@ -1009,7 +1009,7 @@ def _with_constants(line: ln.Line, params: Sequence[float]) -> ast.expr:
                 return ast.UnaryOp(ast.USub(), const) if value < 0 else const
             return self.generic_visit(node)
 
-    return ast.fix_missing_locations(_Sub().visit(copy.deepcopy(line.expr)))
+    return ast.fix_missing_locations(_Sub().visit(ln.copy_tree(line.expr)))
 
 
 def _closed_errors(
@@ -1579,7 +1579,7 @@ def _union(lines: Sequence[ln.Line]) -> tuple[ln.Line, list[list[int] | None]]:
         where = [0] * line.n_params
         for part, text, i in zip(parts, texts, index, strict=True):
             if text not in keys:
-                term = ln.renumbered(ln.Line(copy.deepcopy(part), 1))
+                term = ln.renumbered(ln.Line(ln.copy_tree(part), 1))
                 union = term if union is None else ln.with_summand(union, term)
                 keys[text] = len(keys)
             where[i] = keys[text]
@@ -1803,14 +1803,22 @@ def pool(states: Sequence[SearchState]) -> SearchState:
 def _terms(line: ln.Line) -> set[str]:
     """The summands of a line with its parameters blanked (``p[3] * (omega - 1)`` and
     ``p[0] * (omega - 1)`` are the same term)."""
+    return set(_text_terms(line.text))
 
-    class _Blank(ast.NodeTransformer):
-        def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
-            if isinstance(node.value, ast.Name) and node.value.id == "p":
-                return ast.Name("p", ast.Load())
-            return self.generic_visit(node)
 
-    return {ast.unparse(_Blank().visit(copy.deepcopy(s))) for s in ln.summands(line.expr)}
+class _Blank(ast.NodeTransformer):
+    def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+        if isinstance(node.value, ast.Name) and node.value.id == "p":
+            return ast.Name("p", ast.Load())
+        return self.generic_visit(node)
+
+
+@functools.lru_cache(maxsize=1 << 16)
+def _text_terms(text: str) -> frozenset[str]:
+    """:func:`_terms` of a line's text (the selection asks for the same lines' terms thousands
+    of times)."""
+    expr = ast.parse(text, mode="eval").body
+    return frozenset(ast.unparse(_Blank().visit(s)) for s in ln.summands(expr))
 
 
 def inclusion_frequency(

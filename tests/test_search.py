@@ -349,6 +349,26 @@ def test_without_each_summand():
     assert ln.without_each_summand(shared) == []
 
 
+def test_a_copied_tree_is_the_deep_copy_and_shares_nothing():
+    import ast
+    import copy
+
+    from jaxdmd import lines as ln
+
+    source = Path(search.__file__).read_text()  # every kind of node a module holds
+    for tree in (ast.parse(source), ast.parse("p[0] * jnp.sin(delta - theta) - 1.5", "", "eval")):
+        copied = ln.copy_tree(tree)
+        dump = ast.dump(tree, include_attributes=True)
+        assert ast.dump(copied, include_attributes=True) == dump
+        assert dump == ast.dump(copy.deepcopy(tree), include_attributes=True)
+        originals = {id(node) for node in ast.walk(tree)}
+        assert not any(id(node) in originals for node in ast.walk(copied))
+        for node in ast.walk(copied):  # changing the copy leaves the original as it was
+            if isinstance(node, ast.Name):
+                node.id = "changed"
+        assert ast.dump(tree, include_attributes=True) == dump
+
+
 def test_offline_subset_edit_finds_a_sparse_linear_equation():
     """Among 8 candidate variables, the exhaustive subset edit returns the two the data use."""
     rng = np.random.default_rng(5)

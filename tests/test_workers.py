@@ -102,12 +102,21 @@ def test_searches_side_by_side_in_worker_processes_give_the_archives_of_one_afte
         train, (), dataclasses.replace(config, jobs=3), key=jax.random.key(3),
         checkpoints=tmp_path / "together", observer=Seen(),
     )  # fmt: skip
+    # two at once: the third search runs here after the first, whose own choice is then made
+    # in a worker
+    two = jaxdmd.discover(
+        train, (), dataclasses.replace(config, jobs=2), key=jax.random.key(3),
+        checkpoints=tmp_path / "two",
+    )  # fmt: skip
     for name in ("de", "de2", "de3"):
         a = (tmp_path / "alone" / f"{name}_state.json").read_text()
-        b = (tmp_path / "together" / f"{name}_state.json").read_text()
-        assert a == b, name
-    assert together.de.source == alone.de.source
-    assert together.de.params == alone.de.params
+        assert a == (tmp_path / "together" / f"{name}_state.json").read_text(), name
+        assert a == (tmp_path / "two" / f"{name}_state.json").read_text(), name
+    for other in (together, two):
+        assert other.de.source == alone.de.source
+        assert other.de.params == alone.de.params
+        # each search's own choice, wherever it was made
+        assert other.report["de"]["searches"] == alone.report["de"]["searches"]
     # every search's start and rounds were shown, those of the workers too
     for name in ("DE", "DE2", "DE3"):
         assert f"start {name}" in messages
