@@ -530,8 +530,20 @@ class Equations:
 
 
 def _line_skeleton(contract: Contract, line: ln.Line) -> Skeleton:
-    source = ln.assemble("line", contract.arguments, [line], ["y"])
-    return compile_skeleton(source, variables=contract.arguments, n_outputs=1)
+    """The line compiled as a one-output skeleton, once per line text and arguments: the
+    selection compiles the same lines again and again (its steps, folds and rounds)."""
+    key = (line.text, tuple(contract.arguments))
+    skeleton = _LINE_SKELETONS.get(key)
+    if skeleton is None:
+        source = ln.assemble("line", contract.arguments, [line], ["y"])
+        skeleton = compile_skeleton(source, variables=contract.arguments, n_outputs=1)
+        if len(_LINE_SKELETONS) >= 1 << 12:  # bounded: a long session compiles many lines
+            _LINE_SKELETONS.clear()
+        _LINE_SKELETONS[key] = skeleton
+    return skeleton
+
+
+_LINE_SKELETONS: dict[tuple[str, tuple[str, ...]], Skeleton] = {}
 
 
 def compiled_lines(contract: Contract, lines: Sequence[ln.Line]) -> list[tuple[int, Skeleton]]:

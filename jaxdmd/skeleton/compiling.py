@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ast
-import copy
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -12,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdmd import interp
+from jaxdmd.lines import copy_tree
 from jaxdmd.skeleton.checking import check
 from jaxdmd.skeleton.core import (
     _BARE_CONSTANTS,
@@ -109,7 +109,7 @@ class _Rewriter(ast.NodeTransformer):
             if i == len(node.ops) - 1:
                 shared = right
             elif _is_leaf(right):
-                shared = copy.deepcopy(right)  # a name or p[i]: at most four nodes
+                shared = copy_tree(right)  # a name or p[i]: at most four nodes
             else:
                 name = self.temporary()
                 right = ast.NamedExpr(target=ast.Name(id=name, ctx=ast.Store()), value=right)
@@ -186,7 +186,7 @@ def _build(
 def _rewrite(fdef: ast.FunctionDef) -> tuple[ast.FunctionDef, list[float]]:
     """The tree that is compiled and its constants; checks ``MAX_COMPILED_NODES``."""
     rewriter = _Rewriter()
-    compiled = rewriter.visit(copy.deepcopy(fdef))
+    compiled = rewriter.visit(copy_tree(fdef))
     _within_budget(_count_nodes([compiled]), MAX_COMPILED_NODES, "syntax nodes once rewritten")
     return compiled, rewriter.constants
 
