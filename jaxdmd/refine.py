@@ -254,14 +254,17 @@ def refit_joint(
         return -smoother.log_likelihood(*unpack(theta), recordings)
 
     theta0 = jnp.asarray(np.concatenate([start, np.log(var0 - floor)]))
-    before = float(nll(theta0, recordings))
+    # the likelihood before and after, compiled once: run op by op, each evaluation cost
+    # seconds of small compilations (the optimiser compiles its own, from nll)
+    evaluate = jax.jit(nll)
+    before = float(evaluate(theta0, recordings))
     solution = optx.minimise(
         nll, optx.BFGS(rtol=1e-8, atol=1e-8), theta0, recordings, max_steps=max_steps,
         throw=False,
     )  # fmt: skip
     theta = solution.value
     params, fitted = (np.asarray(x) for x in unpack(theta))
-    after = float(nll(theta, recordings))
+    after = float(evaluate(theta, recordings))
     steps = int(solution.stats["num_steps"])
     report: dict[str, object] = {"steps": steps, "nll_before": before, "nll_after": after}
     if not (np.all(np.isfinite(params)) and np.isfinite(after) and after < before):
