@@ -375,8 +375,8 @@ def _searches_side_by_side(
     here after the first. Their rounds are shown as they come; a search whose worker fails
     runs here afterwards, from its checkpoint. Returns their final states and each one's own
     choice (:func:`jaxdmd.search.final_equations` with ``floor``), made where the search ran;
-    that of a search run here while another is still to run here is made meanwhile in a worker
-    (whose core the workers' searches have left free by then)."""
+    that of a search run here while another is still to run here is made meanwhile in a worker,
+    started once the workers' searches are done and their cores free."""
 
     def checkpoint(name: str) -> Path | None:
         return None if folder is None else folder / f"{name.lower()}_state.json"
@@ -397,8 +397,17 @@ def _searches_side_by_side(
     away = [i for i in range(1, len(names)) if not _finished(checkpoint(names[i]))][: jobs - 1]
     running: dict[int, workers.Worker] = {}
     choosing: dict[int, workers.Worker] = {}
+    starters: list[threading.Thread] = []
     states: dict[int, SearchState] = {}
     choices: dict[int, Equations] = {}
+
+    def choose_when_free(i: int, task: tuple[Any, ...]) -> None:
+        """Start search i's choice in a worker once the workers' searches are done (their
+        cores are then free; before, it would slow the search running here)."""
+        for worker in running.values():
+            worker.wait()
+        choosing[i] = workers.start(_choice_task, *task)
+
     try:
         for i in away:
             running[i] = workers.start(
@@ -410,7 +419,8 @@ def _searches_side_by_side(
             states[i] = here(names[i], keys[i])
             if n + 1 < len(local):
                 task = (search.state_to_dict(states[i]), problem, config, floor)
-                choosing[i] = workers.start(_choice_task, *task)
+                starters.append(threading.Thread(target=choose_when_free, args=(i, task)))
+                starters[-1].start()
             else:
                 choices[i] = choose(states[i])
         for i, worker in running.items():
@@ -421,13 +431,22 @@ def _searches_side_by_side(
                 observer.message(f"{names[i]}: its worker process failed ({err}); run here")
                 states[i] = here(names[i], keys[i])
                 choices[i] = choose(states[i])
+        for starter in starters:
+            starter.join()
         for i, worker in choosing.items():
             try:
                 choices[i] = worker.result()
             except workers.WorkerError:  # made here instead: the same choice
                 choices[i] = choose(states[i])
+        for i in range(len(names)):
+            if i not in choices:  # its worker could not be started
+                choices[i] = choose(states[i])
     finally:
-        for worker in (*running.values(), *choosing.values()):
+        for worker in running.values():
+            worker.stop()
+        for starter in starters:  # they start nothing more once the search workers ended
+            starter.join()
+        for worker in choosing.values():
             worker.stop()
     return [states[i] for i in range(len(names))], [choices[i] for i in range(len(names))]
 

@@ -132,6 +132,11 @@ class Worker:
         detail = [str(value)] if kind == "error" else []
         raise WorkerError("; ".join([*detail, f"exit status {code}", *tail]))
 
+    def wait(self) -> None:
+        """Wait until the worker process has ended (its result, or its failure, is then
+        there)."""
+        self._process.wait()
+
     def stop(self) -> None:
         """End the worker now (its result is then an error)."""
         if self._process.poll() is None:
