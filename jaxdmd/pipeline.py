@@ -430,16 +430,13 @@ def _searches_side_by_side(
             except workers.WorkerError as err:
                 observer.message(f"{names[i]}: its worker process failed ({err}); run here")
                 states[i] = here(names[i], keys[i])
-                choices[i] = choose(states[i])
         for starter in starters:
             starter.join()
         for i, worker in choosing.items():
-            try:
+            with contextlib.suppress(workers.WorkerError):  # else made here below
                 choices[i] = worker.result()
-            except workers.WorkerError:  # made here instead: the same choice
-                choices[i] = choose(states[i])
         for i in range(len(names)):
-            if i not in choices:  # its worker could not be started
+            if i not in choices:  # its worker failed or could not be started: the same choice
                 choices[i] = choose(states[i])
     finally:
         for worker in running.values():

@@ -114,7 +114,8 @@ class _Simulator:
         self.scale = jnp.asarray(select._range(y))
         self.bound = jnp.asarray(blowup * (1.0 + np.max(np.abs(y), axis=2)))  # [B, S]
         self.substeps = substeps
-        self._compiled: Callable[[jax.Array], tuple[jax.Array, jax.Array]] | None = None
+        # one program for every scoring evaluation (op by op, each cost seconds of compiling)
+        self._compiled = jax.jit(self.simulate)
 
     def _rollout(
         self, theta: jax.Array, names: Sequence[str], left: jax.Array, right: jax.Array,
@@ -197,8 +198,6 @@ class _Simulator:
         """NRMSE ``[2, B, S]`` of the closed and the open rollouts (inf where one diverged);
         with time blocks, over each row's block (scaled by the whole recording's range)."""
         out = []
-        if self._compiled is None:  # one program for every evaluation (op by op, each cost
-            self._compiled = jax.jit(self.simulate)  # seconds of small compilations)
         for sim in self._compiled(theta):
             sim = np.asarray(sim)
             err = select._nrmse(sim, np.asarray(self.y), self.windows)
