@@ -44,6 +44,7 @@ from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
 from jaxdmd.refine import (
+    HOLDS,
     model_states,
     refit_bias_compensated,
     refit_integral,
@@ -930,6 +931,7 @@ def discover(
 
             ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
+        jointly_fitted = ae.source  # the structure the joint refit judged (if it ran)
         simulation_report = None
         if config.selection is not None:
             held = "recordings" if len(train) > 1 else "time blocks"
@@ -970,6 +972,14 @@ def discover(
             summary["joint_refit"] = joint_report
         if simulation_report is not None:
             summary["simulation_refit"] = simulation_report
+        holds = _holding(joint_report, ae.source == jointly_fitted)
+        if holds is not None:
+            summary["holds"] = holds
+            if holds["not_holding"]:
+                observer.message(
+                    "AE equations that do not hold with the states unknown (their terms are "
+                    "suspect): " + ", ".join(holds["not_holding"])
+                )
         if test:
             from jaxdmd.rollout import algebraic_r2
 
@@ -993,6 +1003,19 @@ def discover(
         with contextlib.suppress(workers.WorkerError):  # if it failed, save() makes it here
             result = dataclasses.replace(result, physical=physical.result())
     return result
+
+
+def _holding(joint: dict[str, Any] | None, same_structure: bool) -> dict[str, Any] | None:
+    """How well each final algebraic equation holds (``summary["ae"]["holds"]``): the joint
+    refit's error shares (:data:`jaxdmd.refine.HOLDS`), if it ran and the final equations have
+    the structure it fitted (whether or not its parameters were kept); else None."""
+    if not joint or "error_share" not in joint or not same_structure:
+        return None
+    return {
+        "error_share": joint["error_share"],
+        "not_holding": joint["not_holding"],
+        "bar": HOLDS,
+    }
 
 
 def _physical_task(

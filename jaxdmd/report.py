@@ -12,7 +12,7 @@ matplotlib is imported only when a plot is drawn.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +29,7 @@ def equations_markdown(discovery: Discovery) -> str:
     them, in LaTeX, and as Python: :func:`equation_sections`)."""
     lines = ["# Discovered model", ""]
     lines += equation_sections(discovery.de, discovery.ae)
+    lines += holding_section(discovery.report.get("ae", {}).get("holds"))
     frequency = discovery.report.get("de", {}).get("inclusion_frequency")
     searches = len(discovery.report.get("de", {}).get("searches", [])) or 1
     if frequency and searches > 1:
@@ -43,6 +44,31 @@ def equations_markdown(discovery: Discovery) -> str:
         lines += ["", f"## Held-out rollouts ({n} recording(s), means over them)", ""]
         lines += rollout_table(test).splitlines()
     return "\n".join(lines) + "\n"
+
+
+def holding_section(holds: Mapping[str, Any] | None) -> list[str]:
+    """Markdown lines: how well each algebraic equation holds with the states unknown
+    (``summary["ae"]["holds"]``, from :func:`jaxdmd.refine.refit_joint`)."""
+    if not holds:
+        return []
+    from jaxdmd import pretty
+
+    bar = float(holds["bar"])
+    lines = ["", "## How well the algebraic equations hold", ""]
+    lines += [
+        "Each algebraic equation fitted with the states unknown (maximum likelihood over the "
+        "noisy states, their dynamics and the clean algebraic channels): the standard deviation "
+        "of its error as a share of its variable's. An equation with the right terms follows "
+        f"its channel almost exactly (down to 1e-5, the fit's floor); one above {bar:g} does not: "
+        "a term is missing or a stand-in takes its place, and its terms are suspect.",
+        "",
+        "| variable | error / deviation | holds |",
+        "|---|---|---|",
+    ]
+    for name, share in holds["error_share"].items():
+        verdict = "yes" if share <= bar else "**no**"
+        lines.append(f"| {pretty.symbol(name)} | {share:.2g} | {verdict} |")
+    return lines
 
 
 def modes_section(modes: Sequence[dict[str, Any]]) -> list[str]:

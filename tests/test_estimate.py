@@ -144,6 +144,39 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     assert again.params[0] == pytest.approx(2.0, rel=0.002)
 
 
+def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
+    """Two clean algebraic channels, y = 2 sin(a) and z = sin(a) + 20 (w - 1), and the lines
+    p sin(a) for both: z's lacks its speed term (the hidden effect). Fitted with the states
+    unknown, y's line follows its channel to the noise model's precision and z's cannot: the
+    report names z, and only z, as not holding."""
+    from jaxdmd.refine import HOLDS, refit_joint
+
+    recordings, de, _ = _sine_measured(noise=0.01)
+    _, truth = _recordings(n=2, noise=0.01)
+    recordings = [
+        ds.with_channels({"z": np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)}, {"z": "algebraic"})
+        for ds, c in zip(recordings, truth, strict=True)
+    ]
+    states = (Variable("a", "state"), Variable("w", "state"))
+    contract = Contract(loop="AE", targets=("y", "z"), states=states, function_name="algebraic")
+    source = "def algebraic(a, p):\n    y_ = p[0] * jnp.sin(a)\n    z_ = p[1] * jnp.sin(a)\n"
+    source += "    return y_, z_\n"
+    start = Equations(contract, source, (1.9, 1.0), (0.0, 0.0), 0.0)
+    _, report = refit_joint(de, start, recordings, max_steps=300)
+    share = report["error_share"]
+    assert share["y"] < HOLDS / 10 and share["z"] > 10 * HOLDS
+    assert report["not_holding"] == ["z"]
+    # the finding reaches summary.json and equations.md only for the structure it judged
+    from jaxdmd.pipeline import _holding
+    from jaxdmd.report import holding_section
+
+    holds = _holding(report, same_structure=True)
+    assert holds is not None and holds["not_holding"] == ["z"]
+    table = [row for row in holding_section(holds) if row.startswith("| ")]
+    assert table[1:] == [f"| y | {share['y']:.2g} | yes |", f"| z | {share['z']:.2g} | **no** |"]
+    assert _holding(report, same_structure=False) is None
+
+
 def test_the_joint_likelihood_compiles_without_a_copy_of_the_recordings():
     """The joint refit passes the recordings to its compiled likelihood as an argument: the
     compiled program then holds no constant the size of a recording (closed over, they were
