@@ -247,7 +247,8 @@ def refit_joint(
         predicted.append(np.asarray(skeleton(data, jnp.asarray(start))))
         observed.append(np.stack([np.asarray(e.dataset[y]) for y in contract.targets]))
     observed = np.concatenate(observed, axis=1)  # [targets, samples]
-    floor = 1e-10 * np.var(observed, axis=1) + 1e-300
+    variance = np.var(observed, axis=1)  # of each algebraic variable
+    floor = 1e-10 * variance + 1e-300
     var0 = np.maximum(np.var(observed - np.concatenate(predicted, axis=1), axis=1), 2 * floor)
 
     n_p = start.size
@@ -282,7 +283,7 @@ def refit_joint(
         return ae, report
     report["error_variance"] = dict(zip(contract.targets, fitted.tolist(), strict=True))
     # how well each equation holds: its error's standard deviation as a share of its variable's
-    share = np.sqrt(fitted / (np.var(observed, axis=1) + 1e-300))
+    share = np.sqrt(fitted / (variance + 1e-300))
     report["error_share"] = dict(zip(contract.targets, share.tolist(), strict=True))
     report["not_holding"] = [t for t, x in zip(contract.targets, share, strict=True) if x > HOLDS]
     report["converged"] = steps < max_steps

@@ -66,7 +66,7 @@ def holding_section(holds: Mapping[str, Any] | None) -> list[str]:
         "|---|---|---|",
     ]
     for name, share in holds["error_share"].items():
-        verdict = "yes" if share <= bar else "**no**"
+        verdict = "**no**" if name in holds["not_holding"] else "yes"
         lines.append(f"| {pretty.symbol(name)} | {share:.2g} | {verdict} |")
     return lines
 
