@@ -49,6 +49,7 @@ from jaxdmd.refine import (
     refit_bias_compensated,
     refit_integral,
     refit_joint,
+    refit_joint_products,
     smoothed_states,
 )
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
@@ -61,6 +62,7 @@ from jaxdmd.select import (
     select_by_simulation,
     select_states_closed,
     simulation_nrmse,
+    used_variables,
     weighted_by_recording,
 )
 from jaxdmd.simfit import refit_finalists, refit_task, simulated_structure
@@ -891,7 +893,7 @@ def discover(
             # they are now, and are used if the closed selection keeps them
             if fine and config.ae_joint and jobs > 1:
                 observer.message(_JOINT_MESSAGE)
-                task = (refit_algebraic, de, ae, train, estimates, weights, config)
+                task = (refit_algebraic, de, ae, train, estimates, weights, config, weighted)
                 refits_ahead = (de, workers.start(*task))
             start = time.perf_counter()
             starts = [front_lines(selection or {}, t) for t in de.contract.targets]
@@ -927,7 +929,7 @@ def discover(
 
             def refit_here() -> tuple[Equations, Any, Any]:
                 with workers.one_blas_thread():  # as in the worker: the same refits either way
-                    return refit_algebraic(de, ae, train, estimates, weights, config)
+                    return refit_algebraic(de, ae, train, estimates, weights, config, weighted)
 
             ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
@@ -1102,6 +1104,7 @@ def refit_algebraic(
     estimates: Sequence[StateEstimate],
     weights: Any,
     config: DiscoveryConfig,
+    state: SearchState | None = None,
     *,
     progress: Callable[[Any], None] | None = None,
 ) -> tuple[Equations, dict[str, Any] | None, dict[str, Any] | None]:
@@ -1109,7 +1112,10 @@ def refit_algebraic(
     then simulates the training recordings no worse (:class:`Judge`): bias-compensated least
     squares (``config.ae_bias_correction``; ``weights``: the problem's sample weights, None for
     none), then, with model-estimated states, maximum likelihood with the states unknown
-    (``config.ae_joint``). What :func:`discover` runs once the state equations are chosen, here
+    (``config.ae_joint``), and the lines that then do not hold and that the state equations
+    use rebuilt from products of those that do, judged by the same likelihood
+    (:func:`jaxdmd.refine.refit_joint_products`, given ``state``, the AE problem on the
+    estimated states). What :func:`discover` runs once the state equations are chosen, here
     or in a worker process (``progress`` unused: the task signature of
     :mod:`jaxdmd.workers`). Returns the equations and the two refits' reports (None: not run)."""
     judge = Judge(train, config.selection)
@@ -1124,6 +1130,12 @@ def refit_algebraic(
                 de, ae, train, estimates, max_steps=config.ae_joint_steps
             )
             ae = judge.better(ae, refitted, joint_report, de=de)
+            if state is not None and joint_report.get("not_holding"):
+                other, joint_report = refit_joint_products(
+                    de, refitted, joint_report, train, estimates, state,
+                    variables=used_variables(de), max_steps=config.ae_joint_steps,
+                )  # fmt: skip
+                ae = ae if other is None else other
         except (ValueError, np.linalg.LinAlgError) as err:
             joint_report = {"kept": f"the joint refit failed: {err}"}
         joint_report["seconds"] = time.perf_counter() - start

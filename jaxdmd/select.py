@@ -511,15 +511,23 @@ def _composed_lines(
     products: a sum of other lines is already a line in the states, and a single other line as
     a feature would be a stand-in that hides its terms. Nothing here knows what any variable
     is. The lines are candidates; simulation chooses (:func:`select_algebraic`)."""
+    others = [k for k in range(len(fit_choice.contract.targets)) if k != j]
+    return composed_lines(state, j, fit_choice, others, size)
+
+
+def composed_lines(
+    state: SearchState, j: int, equations: Equations, factors: Sequence[int],
+    size: int = COMPOSED_TERMS,
+) -> list[ln.Line]:  # fmt: skip
+    """The best subsets (:func:`_best_subset_lines`) of the pairwise products of
+    ``equations``' lines ``factors`` (their fitted parameters written in as constants) as lines
+    of algebraic variable ``j`` (see :func:`_composed_lines`); none where the problem has an
+    operator."""
     if state.problem.operator is not None:
         return []
-    lines, mappings = ln.split_lines(fit_choice.source)
-    values = np.asarray(fit_choice.params, dtype=float)
-    others = [
-        _with_constants(line, values[list(m)])
-        for k, (line, m) in enumerate(zip(lines, mappings, strict=True))
-        if k != j
-    ]
+    lines, mappings = ln.split_lines(equations.source)
+    values = np.asarray(equations.params, dtype=float)
+    others = [_with_constants(lines[k], values[list(mappings[k])]) for k in factors]
     products = [
         f"({ast.unparse(ast.BinOp(left=a, op=ast.Mult(), right=b))})"
         for a, b in itertools.combinations_with_replacement(others, 2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -9,6 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxdmd import lines as ln
+from jaxdmd import search
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import model_smoother
 from jaxdmd.prompts import Contract, Variable
@@ -125,8 +128,6 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     the maximum-likelihood refit with the states unknown (the DE model as process model, y
     through its equation as a measurement) recovers it, and it must not move it away when it
     starts from the truth."""
-    import dataclasses
-
     from jaxdmd.refine import refit_joint
 
     recordings, de, contract = _sine_measured(noise=0.03)
@@ -175,6 +176,59 @@ def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
     table = [row for row in holding_section(holds) if row.startswith("| ")]
     assert table[1:] == [f"| y | {share['y']:.2g} | yes |", f"| z | {share['z']:.2g} | **no** |"]
     assert _holding(report, same_structure=False) is None
+
+
+def test_a_product_that_does_not_hold_is_rebuilt_from_the_lines_that_do():
+    """Three clean algebraic channels: y = 2 sin(a) + 5 (w - 1), z = sin(a) + 20 (w - 1) and
+    their product P = y z (the hidden effect: P is a product, as a power is of a voltage and a
+    current). y's and z's lines have their terms; P's is the stand-in p sin(a) + p (w - 1).
+    Fitted with the states unknown, P's line does not hold; the best product of the lines that
+    hold, screened by its held-out fit on the estimated states, refitted jointly and kept by the
+    likelihood less BIC's penalty, replaces it, and every line then holds. A variable not
+    offered is left as it is."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.refine import HOLDS, model_states, refit_joint, refit_joint_products
+
+    _, de, _ = _sine_measured(noise=0.01)
+    base, truth = _recordings(n=2, noise=0.01)
+    recordings = []
+    for ds, c in zip(base, truth, strict=True):
+        y = 2.0 * np.sin(c["a"]) + 5.0 * (c["w"] - 1.0)
+        z = np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)
+        roles = dict.fromkeys(("y", "z", "P"), "algebraic")
+        recordings.append(ds.with_channels({"y": y, "z": z, "P": y * z}, roles))
+    estimates = model_states(de, recordings)
+    library = (Variable("u", "input"), *(Variable(n, "algebraic") for n in ("y", "z", "P")))
+    problem, contract = ae_problem(
+        [e.dataset for e in estimates], dataclasses.replace(de.contract, library=library)
+    )
+    assert contract.targets == ("y", "z", "P")
+    state = search.init(problem, contract, jax.random.key(0), search.SearchConfig(n_islands=1))
+    linear = "p[{}] * jnp.sin(a) + p[{}] * (w - 1)"
+    source = f"def {contract.function_name}(a, w, p):\n    y_ = {linear.format(0, 1)}\n"
+    source += f"    z_ = {linear.format(2, 3)}\n    P_ = {linear.format(4, 5)}\n"
+    source += "    return y_, z_, P_\n"
+    start = Equations(contract, source, (1.9, 5.0, 1.0, 19.0, 1.0, 1.0), (0.0,) * 3, 0.0)
+    fitted, report = refit_joint(de, start, recordings, estimates, max_steps=300)
+    assert report["not_holding"] == ["P"]
+    untouched, _ = refit_joint_products(
+        de, fitted, report, recordings, estimates, state, variables=("y", "z"), max_steps=300
+    )
+    assert untouched is None
+    chosen, after = refit_joint_products(
+        de, fitted, report, recordings, estimates, state, max_steps=300
+    )
+    assert chosen is not None, after.get("products")
+    (trial,) = after["products"]
+    assert trial["target"] == "P" and trial["chosen"] and trial["gain"] > 100
+    assert trial["held_out_nmse"] < trial["line_held_out_nmse"]
+    assert after["not_holding"] == [] and max(after["error_share"].values()) < HOLDS
+    assert after["nll_after"] < report["nll_after"]
+    assert after["structure_before"]["not_holding"] == ["P"]
+    lines, _ = ln.split_lines(chosen.source)
+    assert ") * (" in lines[2].text and ") * (" in trial["line"]
+    before = ln.split_lines(fitted.source)[0]
+    assert [x.text for x in lines[:2]] == [x.text for x in before[:2]]  # y's and z's as they were
 
 
 def test_the_joint_likelihood_compiles_without_a_copy_of_the_recordings():
