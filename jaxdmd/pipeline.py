@@ -933,6 +933,14 @@ def discover(
 
             ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
+            rebuilt = [
+                t["target"] for t in (joint_report or {}).get("products", ()) if t.get("chosen")
+            ]
+            if rebuilt:
+                observer.message(
+                    "AE equations rebuilt from products of those that hold (the joint likelihood "
+                    "rose): " + ", ".join(dict.fromkeys(rebuilt))
+                )
         jointly_fitted = ae.source  # the structure the joint refit judged (if it ran)
         simulation_report = None
         if config.selection is not None:

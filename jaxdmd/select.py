@@ -511,7 +511,7 @@ def _composed_lines(
     products: a sum of other lines is already a line in the states, and a single other line as
     a feature would be a stand-in that hides its terms. Nothing here knows what any variable
     is. The lines are candidates; simulation chooses (:func:`select_algebraic`)."""
-    others = [k for k in range(len(fit_choice.contract.targets)) if k != j]
+    others = [k for k in range(len(ln.split_lines(fit_choice.source)[0])) if k != j]
     return composed_lines(state, j, fit_choice, others, size)
 
 
