@@ -248,7 +248,6 @@ def refit_joint(
         predicted.append(np.asarray(skeleton(data, jnp.asarray(start))))
         observed.append(np.stack([np.asarray(e.dataset[y]) for y in contract.targets]))
     observed = np.concatenate(observed, axis=1)  # [targets, samples]
-    n_samples = observed.shape[1]
     variance = np.var(observed, axis=1)  # of each algebraic variable
     floor = 1e-10 * variance + 1e-300
     var0 = np.maximum(np.var(observed - np.concatenate(predicted, axis=1), axis=1), 2 * floor)
@@ -263,31 +262,21 @@ def refit_joint(
     # program would hold its own copy of them (a quarter of a GB at 4 x 1e5 samples)
     recordings = smoother.recordings
 
+    def nll(theta: jax.Array, recordings: Any) -> jax.Array:
+        return -smoother.log_likelihood(*unpack(theta), recordings)
+
     theta0 = jnp.asarray(np.concatenate([start, np.log(var0 - floor)]))
-    # BFGS runs in units of each parameter's standard error, as the states taken as known give
-    # it: the curvature of the likelihood spans ten orders of magnitude across the parameters
-    # (generator 31's default run), and from the identity BFGS took about 700 steps to learn
-    # that, against about 200 so scaled, to the same likelihood within 0.03 nats
-    information = np.concatenate([
-        _line_information(skeleton, estimates, start, var0), np.full(var0.size, n_samples / 2)
-    ])  # fmt: skip
-    scale = jnp.asarray(1 / np.sqrt(np.where(information > 0, information, 1.0)))
-
-    def nll(u: jax.Array, recordings: Any) -> jax.Array:
-        """the negative log-likelihood at theta = theta0 + scale u"""
-        return -smoother.log_likelihood(*unpack(theta0 + scale * u), recordings)
-
     # the likelihood before and after, compiled once: run op by op, each evaluation cost
     # seconds of small compilations (the optimiser compiles its own, from nll)
     evaluate = jax.jit(nll)
-    u0 = jnp.zeros_like(theta0)
-    before = float(evaluate(u0, recordings))
+    before = float(evaluate(theta0, recordings))
     solution = optx.minimise(
-        nll, optx.BFGS(rtol=1e-8, atol=1e-8), u0, recordings, max_steps=max_steps, throw=False
+        nll, optx.BFGS(rtol=1e-8, atol=1e-8), theta0, recordings, max_steps=max_steps,
+        throw=False,
     )  # fmt: skip
-    after = float(evaluate(solution.value, recordings))
-    theta = theta0 + scale * solution.value
+    theta = solution.value
     params, fitted = (np.asarray(x) for x in unpack(theta))
+    after = float(evaluate(theta, recordings))
     steps = int(solution.stats["num_steps"])
     report: dict[str, object] = {"steps": steps, "nll_before": before, "nll_after": after}
     if not (np.all(np.isfinite(params)) and np.isfinite(after) and after < before):
@@ -300,22 +289,6 @@ def refit_joint(
     report["not_holding"] = [t for t, x in zip(contract.targets, share, strict=True) if x > HOLDS]
     report["converged"] = steps < max_steps
     return dataclasses.replace(ae, params=tuple(float(x) for x in params)), report
-
-
-def _line_information(
-    skeleton: Any, estimates: Sequence[StateEstimate], params: np.ndarray, variances: np.ndarray
-) -> np.ndarray:
-    """Each AE parameter's Gauss-Newton information with the states taken as known (the
-    estimates'): the sum over the samples of its line's sensitivity squared over the line's
-    error variance (``variances``, one per line)."""
-    information = np.zeros(params.size)
-    for e in estimates:
-        data = {n: jnp.asarray(e.dataset[n]) for n in e.dataset.names}
-        jacobian = np.asarray(
-            jax.jacfwd(lambda p, data=data: skeleton(data, p))(jnp.asarray(params))
-        )
-        information += np.einsum("tsp,t->p", jacobian**2, 1 / variances)  # [lines, samples, p]
-    return information
 
 
 # The screen before a product's joint refit (:func:`refit_joint_products`): its held-out
