@@ -936,7 +936,12 @@ def discover(
             rebuilt = [
                 t["target"] for t in (joint_report or {}).get("products", ()) if t.get("chosen")
             ]
-            if rebuilt:
+            if rebuilt and not (joint_report or {}).get("products_kept", True):
+                observer.message(
+                    "AE equations rebuilt from products of those that hold (the joint likelihood "
+                    "rose) and not kept: the model then simulates the training recordings worse"
+                )
+            elif rebuilt:
                 observer.message(
                     "AE equations rebuilt from products of those that hold (the joint likelihood "
                     "rose): " + ", ".join(dict.fromkeys(rebuilt))
@@ -1123,9 +1128,10 @@ def refit_algebraic(
     (``config.ae_joint``), and the lines that then do not hold and that the state equations
     use rebuilt from products of those that do, judged by the same likelihood
     (:func:`jaxdmd.refine.refit_joint_products`, given ``state``, the AE problem on the
-    estimated states). What :func:`discover` runs once the state equations are chosen, here
-    or in a worker process (``progress`` unused: the task signature of
-    :mod:`jaxdmd.workers`). Returns the equations and the two refits' reports (None: not run)."""
+    estimated states) and then, as every refit, by the training rollouts. What
+    :func:`discover` runs once the state equations are chosen, here or in a worker process
+    (``progress`` unused: the task signature of :mod:`jaxdmd.workers`). Returns the equations
+    and the two refits' reports (None: not run)."""
     judge = Judge(train, config.selection)
     bias_report = joint_report = None
     if config.ae_bias_correction:
@@ -1139,11 +1145,19 @@ def refit_algebraic(
             )
             ae = judge.better(ae, refitted, joint_report, de=de)
             if state is not None and joint_report.get("not_holding"):
+                first = joint_report
                 other, joint_report = refit_joint_products(
                     de, refitted, joint_report, train, estimates, state,
                     variables=used_variables(de), max_steps=config.ae_joint_steps,
                 )  # fmt: skip
-                ae = ae if other is None else other
+                if other is not None:  # a rebuilt structure, judged as every refit is
+                    verdict: dict[str, Any] = {}
+                    if judge.better(ae, other, verdict, de=de) is other:
+                        ae = other
+                    else:  # the report stays the structure's that the model keeps
+                        joint_report = dict(first, products=joint_report["products"])
+                    joint_report["products_simulation_nrmse"] = verdict.get("simulation_nrmse")
+                    joint_report["products_kept"] = ae is other
         except (ValueError, np.linalg.LinAlgError) as err:
             joint_report = {"kept": f"the joint refit failed: {err}"}
         joint_report["seconds"] = time.perf_counter() - start

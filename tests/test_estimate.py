@@ -339,3 +339,78 @@ def test_the_ae_refits_in_a_worker_process_are_the_refits_here():
     assert away[0] == here[0]
     assert repr(away[1:]) == repr(here[1:])
     assert here[0].params[0] == pytest.approx(2.0, rel=0.002)  # the joint refit ran and kept
+
+
+def _coupled_recordings(n: int = 2, noise: float = 0.01) -> tuple[list[Dataset], Equations]:
+    """The test system with the algebraic y = 2 sin(a) (measured clean) acting on the speed:
+    d a/dt = 50 (w - 1), d w/dt = 0.02 u - 0.01 y; noise of ``noise`` x range on a and w. Returns
+    the recordings and the true state equations."""
+    t = np.linspace(0.0, 6.0, 601)
+    dt = t[1] - t[0]
+    recordings = []
+    for k in range(n):
+        rng = np.random.default_rng(200 + k)
+        u = np.where(t < 1.0, 0.0, 1.0 + 0.3 * k) * np.cos(1.5 * t)
+        a, w = np.empty_like(t), np.empty_like(t)
+        a[0], w[0] = 0.3, 1.0 + 0.0005 * k
+        for i in range(t.size - 1):  # fine enough: the recordings are the data, whatever made them
+            a[i + 1] = a[i] + dt * 50.0 * (w[i] - 1.0)
+            w[i + 1] = w[i] + dt * (0.02 * u[i] - 0.01 * 2.0 * np.sin(a[i]))
+        noisy = {
+            s: x + noise * np.ptp(x) * rng.normal(size=t.shape) for s, x in (("a", a), ("w", w))
+        }
+        roles = {"a": "state", "w": "state", "u": "input", "y": "algebraic"}
+        ds = Dataset.create(t, {**noisy, "u": u, "y": 2.0 * np.sin(a)}, roles, events=(1.0,))
+        recordings.append(ds.with_estimated_derivatives())
+    states = (Variable("a", "state"), Variable("w", "state"))
+    library = (Variable("u", "input"), Variable("y", "algebraic"))
+    source = "def equation(w, u, y, p):\n    d_a = p[0] * (w - 1)\n    d_w = p[1] * u + p[2] * y\n"
+    source += "    return d_a, d_w\n"
+    de = Equations(
+        Contract(loop="DE", targets=("a", "w"), states=states, library=library,
+                 function_name="equation"),
+        source, (50.0, 0.02, -0.01), (0.0, 0.0), 0.0,
+    )  # fmt: skip
+    return recordings, de
+
+
+@pytest.mark.parametrize("rebuilt_gain, kept", [(6.0, False), (2.0, True)])
+def test_lines_rebuilt_from_products_are_judged_by_the_training_rollouts(
+    monkeypatch: pytest.MonkeyPatch, rebuilt_gain: float, kept: bool
+) -> None:
+    """The likelihood may take a rebuilt structure that the closed model simulates worse
+    (Table I's generator 36, seed 1: +2,102 nats, test MAPE 0.035 -> 0.127 %): a rebuilt
+    structure is kept, as every refit, only if the model then simulates the training
+    recordings no worse. Here y's line as the joint refit leaves it is 30 % off (2.6 sin a, and
+    y drives the speed); a rebuilt line 3 x the truth (6 sin a) is refused and the report stays
+    the structure's that the model keeps; the true line (2 sin a) is kept."""
+    from jaxdmd import pipeline
+    from jaxdmd.refine import model_states
+
+    recordings, de = _coupled_recordings()
+    estimates = model_states(de, recordings)
+    contract = Contract(
+        loop="AE", targets=("y",), states=de.contract.states, function_name="algebraic"
+    )
+    first = Equations(contract, SINE, (2.6,), (0.0,), 0.0)
+    rebuilt = dataclasses.replace(first, params=(rebuilt_gain,))
+    joint = {"nll_after": -1.0, "not_holding": ["y"], "error_share": {"y": 0.1}}
+    products = [{"target": "y", "line": "p[0] * jnp.sin(a)", "gain": 10.0, "chosen": True}]
+
+    def refit_joint(*args: Any, **kwargs: Any) -> tuple[Equations, dict[str, Any]]:
+        return first, dict(joint)
+
+    def refit_joint_products(*args: Any, **kwargs: Any) -> tuple[Equations, dict[str, Any]]:
+        return rebuilt, dict(joint, not_holding=[], products=products, structure_before=joint)
+
+    monkeypatch.setattr(pipeline, "refit_joint", refit_joint)
+    monkeypatch.setattr(pipeline, "refit_joint_products", refit_joint_products)
+    config = pipeline.DiscoveryConfig(ae_bias_correction=False)
+    ae, _, report = pipeline.refit_algebraic(
+        de, first, recordings, estimates, None, config, state=object()
+    )
+    errors = report["products_simulation_nrmse"]
+    assert (errors["after"] <= errors["before"]) is kept
+    assert report["products_kept"] is kept and report["products"] == products
+    assert ae is (rebuilt if kept else first)
+    assert ("structure_before" in report) is kept  # the report is the kept structure's
