@@ -933,19 +933,16 @@ def discover(
 
             ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
-            rebuilt = [
-                t["target"] for t in (joint_report or {}).get("products", ()) if t.get("chosen")
-            ]
-            if rebuilt and not (joint_report or {}).get("products_kept", True):
-                observer.message(
-                    "AE equations rebuilt from products of those that hold (the joint likelihood "
-                    "rose) and not kept: the model then simulates the training recordings worse"
-                )
-            elif rebuilt:
+            joint = joint_report or {}
+            rebuilt = [t["target"] for t in joint.get("products", ()) if t.get("chosen")]
+            if rebuilt:
+                refused = not joint.get("products_kept", True)
                 observer.message(
                     "AE equations rebuilt from products of those that hold (the joint likelihood "
                     "rose): " + ", ".join(dict.fromkeys(rebuilt))
-                )
+                    + ("; not kept: the model then simulates the training recordings worse"
+                       if refused else "")
+                )  # fmt: skip
         jointly_fitted = ae.source  # the structure the joint refit judged (if it ran)
         simulation_report = None
         if config.selection is not None:
