@@ -1347,7 +1347,7 @@ def select_algebraic(
             (line, lines_, e) for line, lines_, e in trials
             if e <= best * (1 + config.tolerance) and (
                 e * (1 + config.tolerance) < error
-                or (e <= error and _simpler_and_fits(
+                or (e <= error * (1 + config.tolerance) and _simpler_and_fits(
                     held.state, j, line, current_lines[j], config, states))
             )
         ]  # fmt: skip
