@@ -1232,13 +1232,15 @@ def select_algebraic(
        state integrated, every algebraic variable computed, fits held out:
        :func:`_closed_loro`), and the training recordings are simulated. A line may replace
        the current one if the closed model then simulates better by more than ``tolerance``,
-       or if it is simpler, simulates no worse and fits its variable on held-out data within
+       or if it is simpler and both simulates and fits its variable on held-out data within
        ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
        ``tolerance`` of the best closed error, the simplest does. (Step 1 alone can prefer a
        line with stand-in terms that helps while the other variables are played in; the
-       closed model tells them apart.) Where another variable's line has changed by then, the
-       lines built from the others' lines (:func:`_composed_lines`) are built again from the
-       lines the closed model now has and join the options.
+       closed model tells them apart. A term that only offsets a state equation's error lets
+       the closed model simulate a few percent better, within the noise: the simpler line
+       fits the variable as well, and it is the one kept.) Where another variable's line has
+       changed by then, the lines built from the others' lines (:func:`_composed_lines`) are
+       built again from the lines the closed model now has and join the options.
 
     A variable the state equations do not use is not simulated: its line is the simplest within
     ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best

@@ -222,6 +222,35 @@ def test_an_algebraic_stand_in_that_wins_on_fit_loses_in_simulation():
     assert abs(low + 20.0) < 1.0 and abs(high - 20.0) < 1.0
 
 
+def test_a_spurious_algebraic_term_that_only_offsets_a_state_equation_error_is_dropped():
+    """y = 20 (x - theta), but the state equation the closed model integrates has y's
+    coefficient 10 % off (as a stand-in in a state equation leaves it). A spurious term,
+    u theta, added to y's line then lets the closed model simulate the training recordings a
+    few percent better than the true line: it offsets the state equation's error instead of
+    describing y. The difference is within the selection's tolerance (noise), the true line is
+    simpler and fits y on held-out recordings as well: the closed selection must end on it."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.select import _assemble, _terms, select_algebraic
+
+    recordings = _tracker()
+    _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
+    source = "def f(u, y, p):\n    return p[0] * u + p[1] * y\n"
+    de = search.Equations(contract, source, (1.0, -1.1), (0.0,), 0.0)
+    problem, ae_contract = ae_problem(recordings, contract)
+    state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
+    spurious = ln.Line(ast.parse("p[0] * x + p[1] * theta + p[2] * u * theta", mode="eval").body, 3)
+    fit_choice = _assemble(state, [spurious])
+    assert fit_choice is not None
+    chosen, report = select_algebraic(state, fit_choice, de, recordings)
+    line = ln.split_lines(chosen.source)[0][0]
+    assert _terms(line) == {"p * x", "p * theta"}, line.text
+    assert report["changed"] == ["y"]
+    # the premise: the spurious line simulates the closed model better, within the tolerance
+    closed = {c["line"]: c["dae_nrmse"] for c in report["equations"]["y"]["closed"]}
+    fit_error, true_error = report["dae_nrmse_fit_choice"], closed[line.text]
+    assert fit_error < true_error <= 1.25 * fit_error, (fit_error, true_error)
+
+
 def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     """y = 20 (x - theta) on four recordings; in one, x is measured with a hundred times the
     others' noise (its machine swung far, and the noise is a share of the range). Least squares
