@@ -45,6 +45,7 @@ from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
 from jaxdmd.refine import (
     HOLDS,
+    joint_likelihood,
     model_states,
     refit_bias_compensated,
     refit_integral,
@@ -879,9 +880,16 @@ def discover(
         fit_choice = ae
         if config.selection is not None:
             start = time.perf_counter()
+            # where the closed model and the held-out fit cannot tell a simpler line from the
+            # current one, the likelihood with the states unknown decides
+            likelihood = (
+                joint_likelihood(de, train, estimates, max_steps=config.ae_joint_steps)
+                if fine and config.ae_joint and estimates is not None else None
+            )  # fmt: skip
             ae, ae_selection = select_algebraic(
-                weighted, ae, de, train, config.selection, played_from=regressors
-            )
+                weighted, ae, de, train, config.selection, played_from=regressors,
+                likelihood=likelihood,
+            )  # fmt: skip
             ae_selection["seconds"] = time.perf_counter() - start
             ae_seconds += ae_selection["seconds"]
             if ae_selection.get("changed"):

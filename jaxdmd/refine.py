@@ -13,7 +13,7 @@ search's own fit can, and estimate the states the AE loop regresses on:
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import jax
@@ -289,6 +289,32 @@ def refit_joint(
     report["not_holding"] = [t for t, x in zip(contract.targets, share, strict=True) if x > HOLDS]
     report["converged"] = steps < max_steps
     return dataclasses.replace(ae, params=tuple(float(x) for x in params)), report
+
+
+def joint_likelihood(
+    de: Equations,
+    datasets: Sequence[Dataset],
+    estimates: Sequence[StateEstimate],
+    *,
+    max_steps: int = 1000,
+) -> Callable[[Equations], float]:
+    """The log-likelihood of algebraic equations with the states unknown, their parameters
+    fitted by it (:func:`refit_joint`, from theirs), less BIC's penalty for them: the arbiter
+    :func:`jaxdmd.select.select_algebraic` asks where the closed model and the held-out fit
+    cannot tell two lines apart. -inf if the refit fails."""
+
+    def rate(ae: Equations) -> float:
+        samples = sum(ds.n_samples for ds in datasets) * len(ae.contract.targets)
+        try:
+            _, report = refit_joint(de, ae, datasets, estimates, max_steps=max_steps)
+        except (ValueError, np.linalg.LinAlgError):
+            return -np.inf
+        nll = np.nanmin([report["nll_before"], report["nll_after"]])
+        if not np.isfinite(nll):
+            return -np.inf
+        return float(-nll - 0.5 * np.log(samples) * len(ae.params))
+
+    return rate
 
 
 # The screen before a product's joint refit (:func:`refit_joint_products`): its held-out

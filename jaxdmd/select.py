@@ -1155,6 +1155,15 @@ def _simpler_and_fits(
     return bool(losses[0] <= max(losses[1] * (1 + config.tolerance), EXACT_NMSE))
 
 
+# A log-likelihood of algebraic equations (their parameters fitted by it, less BIC's penalty):
+# :func:`select_algebraic`'s arbiter where the closed model and the held-out fit cannot tell a
+# simpler line from the current one. :func:`jaxdmd.pipeline.discover` passes the likelihood
+# with the states unknown (:func:`jaxdmd.refine.refit_joint`).
+Likelihood = Callable[[Equations], float]
+# the simpler lines per variable that the likelihood may be asked about (each costs a refit)
+LIKELIHOOD_TRIALS = 2
+
+
 def _by_held_out_fit(
     ae_state: SearchState, held: SearchState, derived: list[ln.Line], fit_choice: Equations,
     used: set[str], config: SelectionConfig, states: set[str], report: dict[str, object],
@@ -1207,6 +1216,7 @@ def select_algebraic(
     recordings: Sequence[Dataset],
     config: SelectionConfig | None = None,
     played_from: Sequence[Dataset] | None = None,
+    likelihood: Likelihood | None = None,
 ) -> tuple[Equations, dict[str, object]]:
     """The AE loop's final equations chosen by how the model simulates, as the state equations
     are (:func:`select_by_simulation`).
@@ -1233,12 +1243,11 @@ def select_algebraic(
        :func:`_closed_loro`), and the training recordings are simulated. A line may replace
        the current one if the closed model then simulates better by more than ``tolerance``,
        or if it is simpler and both simulates and fits its variable on held-out data within
-       ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
+       ``tolerance`` of the current line, no worse on one of the two
+       (:func:`_simpler_and_as_good`); of those within
        ``tolerance`` of the best closed error, the simplest does. (Step 1 alone can prefer a
        line with stand-in terms that helps while the other variables are played in; the
-       closed model tells them apart. A term that only offsets a state equation's error lets
-       the closed model simulate a few percent better, within the noise: the simpler line
-       fits the variable as well, and it is the one kept.) Where another variable's line has
+       closed model tells them apart.) Where another variable's line has
        changed by then, the lines built from the others' lines (:func:`_composed_lines`) are
        built again from the lines the closed model now has and join the options.
 
@@ -1314,6 +1323,7 @@ def select_algebraic(
     current_lines, error = list(derived), by_fit
     changed = list(by_fit_changed)
     assembled: dict[tuple[str, ...], Equations | None] = {}
+    likelihoods: dict[tuple[str, ...], float] = {}
     for j, target in enumerate(contract.targets):
         options = {line.text: line for line in (picked[j], *fronts.get(j, ()))}
         if target in used and any(
@@ -1345,14 +1355,18 @@ def select_algebraic(
             (e for line, _, e in trials if line.text == picked[j].text), error
         )
         best = min([error, *(e for *_, e in trials)])
-        eligible = [
+        within = [
             (line, lines_, e) for line, lines_, e in trials
-            if e <= best * (1 + config.tolerance) and (
-                e * (1 + config.tolerance) < error
-                or (e <= error * (1 + config.tolerance) and _simpler_and_fits(
-                    held.state, j, line, current_lines[j], config, states))
-            )
+            if e <= best * (1 + config.tolerance)
+            and (e * (1 + config.tolerance) < error
+                 or _simpler_and_fits(held.state, j, line, current_lines[j], config, states))
         ]  # fmt: skip
+        eligible = [t for t in within if t[2] <= error]
+        if likelihood is not None:  # simpler, within the noise on both yardsticks, worse on both
+            eligible += _likelier(
+                ae_state, [t for t in within if t[2] > error], eligible, current_lines,
+                likelihood, likelihoods, states, entry,
+            )  # fmt: skip
         if eligible:
             _, current_lines, error = min(
                 eligible, key=lambda t: (_complexity(t[0], states), settled(t[2]))
@@ -1365,6 +1379,49 @@ def select_algebraic(
         report["changed"] = []
         return fit_choice, report
     return chosen, report
+
+
+def _likelier(
+    ae_state: SearchState,
+    candidates: Sequence[tuple[ln.Line, list[ln.Line], float]],
+    eligible: Sequence[tuple[ln.Line, list[ln.Line], float]],
+    current: Sequence[ln.Line],
+    likelihood: Likelihood,
+    cache: dict[tuple[str, ...], float],
+    states: set[str],
+    entry: dict[str, object],
+) -> list[tuple[ln.Line, list[ln.Line], float]]:
+    """Of ``candidates`` (simpler lines that simulate the closed model and fit their variable
+    within the tolerance of the current line, yet worse on both), those whose equations
+    ``likelihood`` rates above the current ones: where the closed model and the held-out fit
+    see noise, the likelihood with the states unknown still sees a line that holds (an
+    identity such as v_d = V sin(delta - theta) against a stand-in that bends to the estimated
+    states' errors) and a small term a line needs (an armature resistance). Only lines simpler
+    than every eligible one are asked about, the simplest first, at most
+    :data:`LIKELIHOOD_TRIALS`; each verdict goes into ``entry["likelihood"]``."""
+    bound = min((_complexity(t[0], states) for t in eligible), default=None)
+    asked = sorted(
+        (t for t in candidates if bound is None or _complexity(t[0], states) < bound),
+        key=lambda t: (_complexity(t[0], states), settled(t[2])),
+    )[:LIKELIHOOD_TRIALS]
+
+    def rated(lines: Sequence[ln.Line]) -> float:
+        key = tuple(line.text for line in lines)
+        if key not in cache:
+            equations = _assemble(ae_state, lines)
+            cache[key] = -np.inf if equations is None else float(likelihood(equations))
+        return cache[key]
+
+    verdicts, out = [], []
+    for t in asked:
+        gain = rated(t[1]) - rated(current)
+        verdicts.append({"line": t[0].text, "gain": gain})
+        if gain > 0:
+            out.append(t)
+            break
+    if verdicts:
+        entry["likelihood"] = verdicts
+    return out
 
 
 def weighted_by_recording(

@@ -227,9 +227,12 @@ def test_a_spurious_algebraic_term_that_only_offsets_a_state_equation_error_is_d
     coefficient 10 % off (as a stand-in in a state equation leaves it). A spurious term,
     u theta, added to y's line then lets the closed model simulate the training recordings a
     few percent better than the true line: it offsets the state equation's error instead of
-    describing y. The difference is within the selection's tolerance (noise), the true line is
-    simpler and fits y on held-out recordings as well: the closed selection must end on it."""
+    describing y. Within the tolerance on both yardsticks (the closed model and y's held-out
+    fit) the true line is worse on both; the likelihood with the states unknown, less BIC's
+    penalty, is higher with it, and the closed selection must end on it. Without that
+    likelihood the spurious line stays."""
     from jaxdmd.problems import ae_problem
+    from jaxdmd.refine import joint_likelihood, model_states
     from jaxdmd.select import _assemble, _terms, select_algebraic
 
     recordings = _tracker()
@@ -241,12 +244,18 @@ def test_a_spurious_algebraic_term_that_only_offsets_a_state_equation_error_is_d
     spurious = ln.Line(ast.parse("p[0] * x + p[1] * theta + p[2] * u * theta", mode="eval").body, 3)
     fit_choice = _assemble(state, [spurious])
     assert fit_choice is not None
-    chosen, report = select_algebraic(state, fit_choice, de, recordings)
+    kept, report = select_algebraic(state, fit_choice, de, recordings)
+    assert kept is fit_choice and report["changed"] == []
+    likelihood = joint_likelihood(de, recordings, model_states(de, recordings))
+    chosen, report = select_algebraic(state, fit_choice, de, recordings, likelihood=likelihood)
     line = ln.split_lines(chosen.source)[0][0]
     assert _terms(line) == {"p * x", "p * theta"}, line.text
     assert report["changed"] == ["y"]
+    entry = report["equations"]["y"]
+    assert [v["line"] for v in entry["likelihood"]] == [line.text]
+    assert entry["likelihood"][0]["gain"] > 0
     # the premise: the spurious line simulates the closed model better, within the tolerance
-    closed = {c["line"]: c["dae_nrmse"] for c in report["equations"]["y"]["closed"]}
+    closed = {c["line"]: c["dae_nrmse"] for c in entry["closed"]}
     fit_error, true_error = report["dae_nrmse_fit_choice"], closed[line.text]
     assert fit_error < true_error <= 1.25 * fit_error, (fit_error, true_error)
 
