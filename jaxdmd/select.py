@@ -1242,14 +1242,18 @@ def select_algebraic(
        state integrated, every algebraic variable computed, fits held out:
        :func:`_closed_loro`), and the training recordings are simulated. A line may replace
        the current one if the closed model then simulates better by more than ``tolerance``,
-       or if it is simpler and both simulates and fits its variable on held-out data within
-       ``tolerance`` of the current line, no worse on one of the two
-       (:func:`_simpler_and_as_good`); of those within
-       ``tolerance`` of the best closed error, the simplest does. (Step 1 alone can prefer a
-       line with stand-in terms that helps while the other variables are played in; the
-       closed model tells them apart.) Where another variable's line has
-       changed by then, the lines built from the others' lines (:func:`_composed_lines`) are
-       built again from the lines the closed model now has and join the options.
+       or if it is simpler, simulates no worse and fits its variable on held-out data within
+       ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
+       ``tolerance`` of the best closed error, the simplest does. A simpler line within
+       ``tolerance`` on both yardsticks but worse on both is what the noise cannot decide: a
+       stand-in term that offsets another equation's error helps the closed model a little,
+       and so does, for the other side, a small term the line needs (an armature resistance).
+       There ``likelihood`` decides (:func:`_likelier`; none given: the current line stays).
+       (Step 1 alone can prefer a line with stand-in terms that helps while the other
+       variables are played in; the closed model tells them apart.) Where another variable's
+       line has changed by then, the lines built from the others' lines
+       (:func:`_composed_lines`) are built again from the lines the closed model now has and
+       join the options.
 
     A variable the state equations do not use is not simulated: its line is the simplest within
     ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best
@@ -1263,8 +1267,9 @@ def select_algebraic(
     With one recording, its time blocks are held out instead (:func:`_held_out`).
     Returns the equations (parameters fitted on all recordings) and a report: what was held
     out (``held_out``), per variable the candidates, the Pareto front, the choice and the
-    closed error with it; the closed error of the fit choice and of the result; the variables
-    changed.
+    closed error with it, and the likelihood's verdicts (``likelihood``: each line asked about
+    and its gain in nats over the current equations); the closed error of the fit choice and
+    of the result; the variables changed.
     """
     config = config or SelectionConfig()
     recordings = list(recordings)
