@@ -58,7 +58,7 @@ def test_nested_comparison_chains_compile_linearly(k):
     assert size["compiled"] <= COMPILED_PER_NODE * size["nodes"]
     assert size["instructions"] <= INSTRUCTIONS_PER_NODE * size["nodes"]
     assert peak < 20e6  # bytes of Python allocations (the old rewrite needed gigabytes at 20)
-    assert elapsed < 1.0  # generous: it takes about 0.02 s
+    assert elapsed < 10.0  # about 0.02 s alone, seconds on a loaded machine; a blow-up, minutes
     # and it computes what Python's chains compute
     x = np.array([-1.0, 0.0, 0.5, 2.0])
     y = np.array([0.0, 0.0, 1.0, 1.0])
