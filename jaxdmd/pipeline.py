@@ -883,8 +883,9 @@ def discover(
             # where the closed model and the held-out fit cannot tell a simpler line from the
             # current one, the likelihood with the states unknown decides
             likelihood = (
-                joint_likelihood(de, train, estimates, max_steps=config.ae_joint_steps)
-                if fine and config.ae_joint and estimates is not None else None
+                joint_likelihood(
+                    de, train, estimates, max_steps=config.ae_joint_steps, jobs=jobs
+                ) if fine and config.ae_joint and estimates is not None else None
             )  # fmt: skip
             ae, ae_selection = select_algebraic(
                 weighted, ae, de, train, config.selection, played_from=regressors,

@@ -1155,13 +1155,14 @@ def _simpler_and_fits(
     return bool(losses[0] <= max(losses[1] * (1 + config.tolerance), EXACT_NMSE))
 
 
-# A log-likelihood of algebraic equations (their parameters fitted by it, less BIC's penalty):
-# :func:`select_algebraic`'s arbiter where the closed model and the held-out fit cannot tell a
-# simpler line from the current one. :func:`jaxdmd.pipeline.discover` passes the likelihood
-# with the states unknown (:func:`jaxdmd.refine.refit_joint`).
-Likelihood = Callable[[Equations], float]
-# the simpler lines per variable that the likelihood may be asked about (each costs a refit)
-LIKELIHOOD_TRIALS = 2
+# The log-likelihood of each of several algebraic equation sets (their parameters fitted by
+# it, less BIC's penalty): :func:`select_algebraic`'s arbiter where the closed model and the
+# held-out fit cannot tell a simpler line from the current one. :func:`jaxdmd.pipeline.discover`
+# passes the likelihood with the states unknown (:func:`jaxdmd.refine.joint_likelihood`).
+Likelihood = Callable[[Sequence[Equations]], Sequence[float]]
+# the simpler lines per variable that the likelihood may be asked about, each with the current
+# equations (each costs a joint refit; on Table I no second line asked about was ever taken)
+LIKELIHOOD_TRIALS = 1
 
 
 def _by_held_out_fit(
@@ -1403,23 +1404,30 @@ def _likelier(
     identity such as v_d = V sin(delta - theta) against a stand-in that bends to the estimated
     states' errors) and a small term a line needs (an armature resistance). Only lines simpler
     than every eligible one are asked about, the simplest first, at most
-    :data:`LIKELIHOOD_TRIALS`; each verdict goes into ``entry["likelihood"]``."""
+    :data:`LIKELIHOOD_TRIALS`, each with the current equations (one call: a likelihood may rate
+    them side by side); each verdict goes into ``entry["likelihood"]``."""
     bound = min((_complexity(t[0], states) for t in eligible), default=None)
     asked = sorted(
         (t for t in candidates if bound is None or _complexity(t[0], states) < bound),
         key=lambda t: (_complexity(t[0], states), settled(t[2])),
     )[:LIKELIHOOD_TRIALS]
 
-    def rated(lines: Sequence[ln.Line]) -> float:
-        key = tuple(line.text for line in lines)
-        if key not in cache:
-            equations = _assemble(ae_state, lines)
-            cache[key] = -np.inf if equations is None else float(likelihood(equations))
-        return cache[key]
+    def rated(*sets: Sequence[ln.Line]) -> list[float]:
+        """each set of lines rated, those not yet rated asked about together"""
+        keys = [tuple(line.text for line in lines) for lines in sets]
+        new = {k: _assemble(ae_state, lines) for k, lines in zip(keys, sets, strict=True)
+               if k not in cache}  # fmt: skip
+        cache.update((k, -np.inf) for k, eq in new.items() if eq is None)
+        ready = [(k, eq) for k, eq in new.items() if eq is not None]
+        if ready:
+            values = likelihood([eq for _, eq in ready])
+            cache.update((k, float(v)) for (k, _), v in zip(ready, values, strict=True))
+        return [cache[k] for k in keys]
 
     verdicts, out = [], []
     for t in asked:
-        gain = rated(t[1]) - rated(current)
+        now, then = rated(current, t[1])
+        gain = then - now
         verdicts.append({"line": t[0].text, "gain": gain})
         if gain > 0:
             out.append(t)
