@@ -291,6 +291,12 @@ def refit_joint(
     return dataclasses.replace(ae, params=tuple(float(x) for x in params)), report
 
 
+def _bic_penalty(datasets: Sequence[Dataset], targets: int) -> float:
+    """BIC's penalty per parameter, in nats, of a likelihood of ``targets`` algebraic variables
+    over every sample of ``datasets`` (:func:`refit_joint`'s)."""
+    return float(0.5 * np.log(sum(ds.n_samples for ds in datasets) * targets))
+
+
 def joint_rating(
     de: Equations,
     ae: Equations,
@@ -304,7 +310,6 @@ def joint_rating(
     parameters fitted by it (:func:`refit_joint`, from theirs), less BIC's penalty for them;
     -inf if the refit fails. (``progress`` unused: the task signature of
     :mod:`jaxdmd.workers`.)"""
-    samples = sum(ds.n_samples for ds in datasets) * len(ae.contract.targets)
     try:
         _, report = refit_joint(de, ae, datasets, estimates, max_steps=max_steps)
     except (ValueError, np.linalg.LinAlgError):
@@ -312,7 +317,7 @@ def joint_rating(
     nll = np.nanmin([report["nll_before"], report["nll_after"]])
     if not np.isfinite(nll):
         return -np.inf
-    return float(-nll - 0.5 * np.log(samples) * len(ae.params))
+    return float(-nll - _bic_penalty(datasets, len(ae.contract.targets)) * len(ae.params))
 
 
 def joint_likelihood(
@@ -330,23 +335,20 @@ def joint_likelihood(
     each, as here: the same ratings either way)."""
     from jaxdmd import workers
 
+    args = (datasets, estimates, max_steps)
+
     def rate(equations: Sequence[Equations]) -> list[float]:
         equations = list(equations)
-        task = (de, datasets, estimates, max_steps)
-        ahead = [
-            workers.start(joint_rating, de, ae, *task[1:])
-            for ae in (equations[1:] if jobs > 1 else [])
-        ]  # fmt: skip
-        out = []
+        ahead = (
+            [workers.start(joint_rating, de, ae, *args) for ae in equations[1:]] if jobs > 1 else []
+        )
         with workers.one_blas_thread():
-            for k, ae in enumerate(equations):
-                if k == 0 or not ahead:
-                    out.append(joint_rating(de, ae, *task[1:]))
-                    continue
+            out = [joint_rating(de, ae, *args) for ae in equations[: len(equations) - len(ahead)]]
+            for ae, worker in zip(equations[len(out) :], ahead, strict=True):
                 try:
-                    out.append(float(ahead[k - 1].result()))
+                    out.append(float(worker.result()))
                 except workers.WorkerError:  # a worker that failed: its rating made here
-                    out.append(joint_rating(de, ae, *task[1:]))
+                    out.append(joint_rating(de, ae, *args))
         return out
 
     return rate
@@ -396,8 +398,7 @@ def refit_joint_products(
     """
     contract = fitted.contract
     targets = list(contract.targets)
-    samples = sum(ds.n_samples for ds in datasets) * len(targets)
-    penalty = 0.5 * np.log(samples)  # BIC's, per parameter
+    penalty = _bic_penalty(datasets, len(targets))
     trials: list[dict[str, Any]] = []
     best_eq: Equations | None = None
     seen: set[tuple[str, str]] = set()  # (variable, line): each candidate judged once
