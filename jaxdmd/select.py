@@ -1141,16 +1141,11 @@ def _front(lines: Sequence[ln.Line], errors: np.ndarray, states: set[str]) -> li
     return front
 
 
-def _simpler_and_fits(
-    state: SearchState, j: int, new: ln.Line, old: ln.Line, config: SelectionConfig,
-    states: set[str],
-) -> bool:  # fmt: skip
-    """Whether ``new`` is simpler than ``old`` and fits algebraic variable ``j`` (held out as
-    the selection holds out: recordings or time blocks) within ``tolerance`` of it. A closed
-    simulation is slow to see a small term of an algebraic line (an armature resistance in a
-    stator current); the variable's own held-out fit is not."""
-    if _complexity(new, states) >= _complexity(old, states):
-        return False
+def _fits(state: SearchState, j: int, new: ln.Line, old: ln.Line, config: SelectionConfig) -> bool:
+    """Whether ``new`` fits algebraic variable ``j`` (held out as the selection holds out:
+    recordings or time blocks) within ``tolerance`` of ``old``. A closed simulation is slow to
+    see a small term of an algebraic line (an armature resistance in a stator current); the
+    variable's own held-out fit is not."""
     losses = cross_validated_losses(state, j, [ln.renumbered(new), ln.renumbered(old)])
     return bool(losses[0] <= max(losses[1] * (1 + config.tolerance), EXACT_NMSE))
 
@@ -1244,12 +1239,14 @@ def select_algebraic(
        :func:`_closed_loro`), and the training recordings are simulated. A line may replace
        the current one if the closed model then simulates better by more than ``tolerance``,
        or if it is simpler, simulates no worse and fits its variable on held-out data within
-       ``tolerance`` of the current line (:func:`_simpler_and_fits`); of those within
-       ``tolerance`` of the best closed error, the simplest does. A simpler line within
-       ``tolerance`` on both yardsticks but worse on both is what the noise cannot decide: a
+       ``tolerance`` of the current line (:func:`_fits`); of those within ``tolerance`` of
+       the best closed error, the simplest does. A line no larger (in parameters) within
+       ``tolerance`` on both yardsticks but not taken so is what the noise cannot decide: a
        stand-in term that offsets another equation's error helps the closed model a little,
-       and so does, for the other side, a small term the line needs (an armature resistance).
-       There ``likelihood`` decides (:func:`_likelier`; none given: the current line stays).
+       and so does, for the other side, a small term the line needs (an armature resistance);
+       stand-ins that bend to the estimated states' errors fit the variable about as well as
+       the true terms, and simulate about as well. There ``likelihood`` decides
+       (:func:`_likelier`; none given: the current line stays).
        (Step 1 alone can prefer a line with stand-in terms that helps while the other
        variables are played in; the closed model tells them apart.) Where another variable's
        line has changed by then, the lines built from the others' lines
@@ -1361,17 +1358,24 @@ def select_algebraic(
             (e for line, _, e in trials if line.text == picked[j].text), error
         )
         best = min([error, *(e for *_, e in trials)])
-        within = [
-            (line, lines_, e) for line, lines_, e in trials
-            if e <= best * (1 + config.tolerance)
-            and (e * (1 + config.tolerance) < error
-                 or _simpler_and_fits(held.state, j, line, current_lines[j], config, states))
+        now = current_lines[j]
+        near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
+        # whether each line no larger than the current one fits the variable within tolerance
+        fits = {
+            t[0].text: _fits(held.state, j, t[0], now, config)
+            for t in near if t[0].n_params <= now.n_params
+        }  # fmt: skip
+        eligible = [
+            t for t in near if t[2] <= error and (
+                t[2] * (1 + config.tolerance) < error
+                or (_complexity(t[0], states) < _complexity(now, states) and fits[t[0].text])
+            )
         ]  # fmt: skip
-        eligible = [t for t in within if t[2] <= error]
-        if likelihood is not None:  # simpler, within the noise on both yardsticks, worse on both
+        if likelihood is not None:  # within the noise on both yardsticks, and not taken
+            undecided = [t for t in near if t not in eligible and fits.get(t[0].text, False)]
             eligible += _likelier(
-                ae_state, [t for t in within if t[2] > error], eligible, current_lines,
-                likelihood, likelihoods, states, entry,
+                ae_state, undecided, eligible, current_lines, likelihood, likelihoods, states,
+                entry,
             )  # fmt: skip
         if eligible:
             _, current_lines, error = min(
@@ -1397,8 +1401,8 @@ def _likelier(
     states: set[str],
     entry: dict[str, object],
 ) -> list[tuple[ln.Line, list[ln.Line], float]]:
-    """Of ``candidates`` (simpler lines that simulate the closed model and fit their variable
-    within the tolerance of the current line, yet worse on both), those whose equations
+    """Of ``candidates`` (lines no larger than the current one that simulate the closed model
+    and fit their variable within the tolerance of it, yet not taken), those whose equations
     ``likelihood`` rates above the current ones: where the closed model and the held-out fit
     see noise, the likelihood with the states unknown still sees a line that holds (an
     identity such as v_d = V sin(delta - theta) against a stand-in that bends to the estimated

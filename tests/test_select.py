@@ -260,6 +260,53 @@ def test_a_spurious_algebraic_term_that_only_offsets_a_state_equation_error_is_d
     assert fit_error < true_error <= 1.25 * fit_error, (fit_error, true_error)
 
 
+def test_a_stand_in_as_large_as_the_true_line_is_replaced_where_the_likelihood_says_so():
+    """y = 20 (x - sin theta), theta swinging to 0.45 rad: the fit choice's line x + theta has
+    as many parameters as the true x + sin theta and is no larger, a stand-in that is right to
+    a few percent on these angles. Closed, the true line simulates the training recordings
+    better, but by less than the tolerance; so without a likelihood the stand-in stays (it is
+    not simpler, and not clearly worse). The likelihood with the states unknown sees the
+    curvature in y's residuals: it is asked about the true line, and the closed selection must
+    end on it."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.proposers import Sample
+    from jaxdmd.refine import joint_likelihood, model_states
+    from jaxdmd.select import _assemble, _terms, select_algebraic
+
+    raw = tracking(3, 0.01, 20.0, 1001, (0.2, 0.05, 0.3, 0.1), amplitude=0.45, curve=np.sin)
+    recordings = [ds.with_estimated_derivatives() for ds in raw]
+    _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
+    source = "def f(u, y, p):\n    return p[0] * u + p[1] * y\n"
+    de = search.Equations(contract, source, (1.0, -1.0), (0.0,), 0.0)
+    problem, ae_contract = ae_problem(recordings, contract)
+    state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
+    # one round in which a proposer wrote the true line: it is in the archive
+    state, _ = search.prompts(state)
+    answer = (
+        "def algebraic(x, u, theta, p):\n    y_ = p[0] * x + p[1] * jnp.sin(theta)\n    return y_\n"
+    )
+    state, _ = search.step(state, [Sample(answer, 0)])
+    stand_in = ln.Line(ast.parse("p[0] * x + p[1] * theta", mode="eval").body, 2)
+    fit_choice = _assemble(state, [stand_in])
+    assert fit_choice is not None
+    kept, report = select_algebraic(state, fit_choice, de, recordings)
+    assert kept is fit_choice and report["changed"] == []
+    # the premise: the true line simulates the closed model better, within the tolerance
+    closed = {c["line"]: c["dae_nrmse"] for c in report["equations"]["y"]["closed"]}
+    true_error, fit_error = (
+        closed["p[0] * x + p[1] * jnp.sin(theta)"],
+        report["dae_nrmse_fit_choice"],
+    )
+    assert true_error < fit_error <= 1.25 * true_error, (true_error, fit_error)
+    likelihood = joint_likelihood(de, recordings, model_states(de, recordings))
+    chosen, report = select_algebraic(state, fit_choice, de, recordings, likelihood=likelihood)
+    line = ln.split_lines(chosen.source)[0][0]
+    assert _terms(line) == {"p * x", "p * jnp.sin(theta)"}, line.text
+    assert report["changed"] == ["y"]
+    verdicts = report["equations"]["y"]["likelihood"]
+    assert [v["line"] for v in verdicts] == [line.text] and verdicts[0]["gain"] > 0
+
+
 def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     """y = 20 (x - theta) on four recordings; in one, x is measured with a hundred times the
     others' noise (its machine swung far, and the noise is a share of the range). Least squares
