@@ -1,0 +1,35 @@
+"""Tests of benchmarks/generic.py's acceptance line: round-off ties, real differences do not."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "generic.py"
+_spec = importlib.util.spec_from_file_location("generic_benchmark", _PATH)
+assert _spec is not None and _spec.loader is not None
+generic = importlib.util.module_from_spec(_spec)
+sys.modules["generic_benchmark"] = generic
+_spec.loader.exec_module(generic)
+
+
+def _row(name: str, ours: float, theirs: float, exact: bool) -> dict:
+    return {
+        "system": name, "noise": 0.0,
+        "jaxdmd": {"nmse_in": ours, "nmse_out": ours, "structure": exact},
+        "pysindy": {"nmse_in": theirs, "nmse_out": theirs, "structure": False},
+    }  # fmt: skip
+
+
+def test_two_exact_models_tie_and_a_real_loss_counts():
+    rows = [
+        _row("exact_both", 4.5e-30, 1.4e-30, True),  # both at round-off: a tie
+        _row("better", 1e-6, 1e-3, True),
+        _row("worse", 3.1e-4, 2.4e-4, False),  # a real difference, above round-off
+    ]
+    line = generic.summary(rows)
+    assert "exact structure on 2 of 3 systems (PySINDy 0)" in line
+    assert "at most PySINDy's on 2 of 3" in line
+    assert generic.at_most(4.5e-30, 1.4e-30) and not generic.at_most(3.1e-4, 2.4e-4)
+    assert "Noise 0:" in generic.table(rows)
