@@ -6,9 +6,9 @@ record as an ANDES case (the machine on a bus behind a line to an infinite bus, 
 0.15 s, as ``tests/test_export.py`` does for a known machine), simulates it in ANDES, and rolls
 the *discovered* model itself (``jaxdmd.load``, its own untied coefficients) out closed on
 ANDES's terminal voltage, angle and inputs. Each model starts from its own equilibrium at the
-same operating point: the discovered model's 1/T'_d0 seen from v_f and from e'_q (and its 1/M
-seen from P_m and from P_e) differ a little, so v_f and P_m are played in shifted by the
-constants that make its d e'_q/dt and d omega/dt vanish at the first sample. Printed: R^2 of
+same operating point: the discovered model's 1/T'_d0 seen from v_f and from e'_q differ a
+little, and so do its P_e line and ANDES's air-gap torque, so v_f and P_m are played in shifted
+by the constants that make its d e'_q/dt and d omega/dt vanish at the first sample. Printed: R^2 of
 delta - delta(0), omega, e'_q, e''_d (GENROU's psi''_q) and P_e (GENROU's air-gap torque).
 
     python benchmarks/andes_roundtrip.py runs/demo
@@ -76,23 +76,27 @@ def main(argv: list[str] | None = None) -> int:
     roles |= {"V": "boundary", "theta": "boundary"}
     rec = as_recording(ss, channels, roles, events=FAULT)
     ch = {n: np.asarray(rec[n]).copy() for n in rec.names}
+    dt = float(rec.t[1] - rec.t[0])
+    driven = (("v_f", "e_qp"), ("P_m", "omega"))  # each input and the state it drives
+
+    def rollout(channels: dict[str, np.ndarray]):
+        return model.simulate(Dataset.create(rec.t, channels, roles, events=FAULT))
+
     # the coefficients of v_f in d e'_q/dt and of P_m in d omega/dt, by their effect: one unit
     # more of each played in, the initial rate of the state it drives
-    gains = {}
-    for name, state in (("v_f", "e_qp"), ("P_m", "omega")):
-        base = model.simulate(Dataset.create(rec.t, ch, roles, events=FAULT))
-        bumped = dict(ch, **{name: ch[name] + 1e-3})
-        sim = model.simulate(Dataset.create(rec.t, bumped, roles, events=FAULT))
-        dt = float(rec.t[1] - rec.t[0])
-        gains[name] = (float(sim[state][1]) - float(base[state][1])) / dt / 1e-3
+    base = rollout(ch)
+    gains = {
+        name: (float(rollout(dict(ch, **{name: ch[name] + 1e-3}))[state][1])
+               - float(base[state][1])) / dt / 1e-3
+        for name, state in driven
+    }  # fmt: skip
+    sim = base
     for _ in range(3):  # Newton steps on the two initial rates
-        sim = model.simulate(Dataset.create(rec.t, ch, roles, events=FAULT))
-        dt = float(rec.t[1] - rec.t[0])
-        for name, state in (("v_f", "e_qp"), ("P_m", "omega")):
+        for name, state in driven:
             rate = (float(sim[state][1]) - float(sim[state][0])) / dt
             ch[name] = ch[name] - rate / gains[name]
+        sim = rollout(ch)
     rec = Dataset.create(rec.t, ch, roles, events=FAULT)
-    sim = model.simulate(rec)
     if sim.diverged:
         print("the discovered model diverges on ANDES's fault")
         return 1
