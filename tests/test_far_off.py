@@ -3,11 +3,8 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
+from benchmark_scripts import load_script
 
 import jaxdmd  # noqa: F401  (float64)
 from jaxdmd.data import Dataset
@@ -44,12 +41,7 @@ def test_summary_and_terminal_table_show_far_off_rollouts():
 
 
 def test_table1_rows_carry_the_flag_without_changing_the_aggregation():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "table1.py"
-    spec = importlib.util.spec_from_file_location("table1_far_off", path)
-    assert spec is not None and spec.loader is not None
-    table1 = importlib.util.module_from_spec(spec)
-    sys.modules["table1_far_off"] = table1
-    spec.loader.exec_module(table1)
+    table1 = load_script("table1.py", "table1_far_off")
     scores = [score({"x": X + 5.0, "y": Y}, DS), score({"x": X, "y": Y}, DS)]
     row = table1.summarise_recordings(scores)
     assert row["n_far_off"] == 1 and row["n_diverged"] == 0

@@ -2,16 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
+from benchmark_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "generic.py"
-_spec = importlib.util.spec_from_file_location("generic_benchmark", _PATH)
-assert _spec is not None and _spec.loader is not None
-generic = importlib.util.module_from_spec(_spec)
-sys.modules["generic_benchmark"] = generic
-_spec.loader.exec_module(generic)
+generic = load_script("generic.py", "generic_benchmark")
 
 
 def _row(name: str, ours: float, theirs: float, exact: bool) -> dict:

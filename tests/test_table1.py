@@ -3,22 +3,16 @@ the pooled table over seeds and the (generator, seed) jobs."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import load_script
 
 import jaxdmd  # noqa: F401  (float64)
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "table1.py"
-_spec = importlib.util.spec_from_file_location("table1", _PATH)
-assert _spec is not None and _spec.loader is not None
-table1 = importlib.util.module_from_spec(_spec)
-sys.modules["table1"] = table1
-_spec.loader.exec_module(table1)
+table1 = load_script("table1.py", "table1")
 
 
 def _score(mape: float, r2: float, diverged: bool = False) -> dict:
