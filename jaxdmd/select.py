@@ -1360,19 +1360,22 @@ def select_algebraic(
         best = min([error, *(e for *_, e in trials)])
         now = current_lines[j]
         near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
+        # the lines simpler than the current one that simulate no worse
+        simpler = {
+            t[0].text for t in near
+            if t[2] <= error and _complexity(t[0], states) < _complexity(now, states)
+        }  # fmt: skip
         # whether a line fits the variable within tolerance, where that is asked: a simpler line
         # that simulates no worse, and with a likelihood any line no larger than the current one
         fits = {
             t[0].text: _fits(held.state, j, t[0], now, config)
-            for t in near if t[0].n_params <= now.n_params and (
-                likelihood is not None
-                or (t[2] <= error and _complexity(t[0], states) < _complexity(now, states))
-            )
-        }  # fmt: skip
+            for t in near
+            if t[0].n_params <= now.n_params and (likelihood is not None or t[0].text in simpler)
+        }
         eligible = [
             t for t in near if t[2] <= error and (
                 t[2] * (1 + config.tolerance) < error
-                or (_complexity(t[0], states) < _complexity(now, states) and fits[t[0].text])
+                or (t[0].text in simpler and fits[t[0].text])
             )
         ]  # fmt: skip
         if likelihood is not None:  # within the noise on both yardsticks, and not taken
