@@ -746,6 +746,14 @@ def _clip_partials(xp: Any, x: Any, y: Any, z: Any, imm: Any, v: Any) -> tuple[A
     return dm * _balanced(xp, x, m, y), dm * _balanced(xp, y, m, x), _balanced(xp, z, v, m)
 
 
+def _power(xp: Any, x: Any, y: Any) -> Any:
+    """``x ** y`` as C99's ``pow`` defines it, on both sides: NumPy's ``power`` takes a
+    shortcut for a scalar exponent of 0.5 (a square root, so that ``(-inf) ** 0.5`` is nan and
+    ``(-0.0) ** 0.5`` is -0.0, where ``pow`` and XLA give inf and 0.0); ``float_power`` calls
+    ``pow`` itself."""
+    return np.float_power(x, y) if xp is np else xp.power(x, y)
+
+
 RULES: dict[str, _Rule] = {
     "neg": (lambda xp, x, y, z, imm: -x, lambda xp, x, y, z, imm, v: (-1.0, None, None)),
     "add": (lambda xp, x, y, z, imm: x + y, lambda xp, x, y, z, imm, v: (1.0, 1.0, None)),
@@ -756,17 +764,17 @@ RULES: dict[str, _Rule] = {
         lambda xp, x, y, z, imm, v: (1.0 / y, -x / (y * y), None),
     ),
     "pow": (
-        lambda xp, x, y, z, imm: xp.power(x, y),
+        lambda xp, x, y, z, imm: _power(xp, x, y),
         lambda xp, x, y, z, imm, v: (
-            y * xp.power(x, y - 1.0),
+            y * _power(xp, x, y - 1.0),
             xp.log(xp.where(x == 0, 1.0, x)) * v,
             None,
         ),
     ),
     "powc": (
-        lambda xp, x, y, z, imm: xp.power(x, imm),
+        lambda xp, x, y, z, imm: _power(xp, x, imm),
         lambda xp, x, y, z, imm, v: (
-            xp.where(imm == 0, 0.0, imm * xp.power(x, imm - 1.0)),
+            xp.where(imm == 0, 0.0, imm * _power(xp, x, imm - 1.0)),
             None,
             None,
         ),
