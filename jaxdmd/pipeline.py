@@ -814,6 +814,10 @@ def discover(
         de = search.final_equations(de_state, floor=floor, include=per_search)
     else:
         de = per_search[0]
+    # every state equation's samples weighted by its error variance in their recording (a
+    # recording whose machine slipped poles has states, currents and voltages tens of times
+    # noisier than the others', and unweighted it bends the fit): what follows fits on it
+    de_state, de, de_recording_weights = weighted_by_recording(de_state, de)
     de_seconds = time.perf_counter() - start
     selection = None
     if config.selection is not None:
@@ -839,6 +843,8 @@ def discover(
         "proposer": factory.name,
         "de": _loop_summary(de_state, de, de_seconds, refit),
     }
+    if de_recording_weights:
+        report["de"]["recording_weights"] = de_recording_weights
     if selection is not None:
         report["de"]["selection"] = selection
     if len(de_states) > 1:

@@ -1468,9 +1468,14 @@ def weighted_by_recording(
     reweighted. Returns the state whose problem carries the weights (``[targets, N]``; what
     follows fits on it), the refitted equations and a report: per target the weight of each
     recording's samples, and the refits made.
+
+    The state equations too (a problem with a matched operator: the residuals are those the
+    fit compares, the operator applied to the predictions): a state's noise is a share of its
+    range, so the derivatives estimated from a recording whose machine slipped poles are tens
+    of times noisier than the others', and so are its currents and voltages as regressors.
     """
     problem = state.problem
-    if problem.groups is None or problem.operator is not None:
+    if problem.groups is None:
         return state, equations, {}
     groups = np.asarray(problem.groups)
     labels = np.unique(groups)
@@ -1491,10 +1496,13 @@ def weighted_by_recording(
             break
         variables = {n: problem.variables[n] for n in skeleton.arguments}
         pred = skeleton(variables, np.asarray(current.params))
+        if problem.operator is not None:
+            pred = problem.operator(jax.numpy.asarray(pred))
+        pred = np.asarray(pred, dtype=float)
         weights = base.copy()
         shares = np.ones((len(targets), len(labels)))
         for j in range(len(targets)):
-            r2 = (np.asarray(pred[j], dtype=float) - targets[j]) ** 2
+            r2 = (pred[j] - targets[j]) ** 2
             variance = np.bincount(index, base[j] * r2) / np.bincount(index, base[j])
             if not np.all(np.isfinite(variance) & (variance > 0)):
                 continue

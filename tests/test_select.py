@@ -345,6 +345,42 @@ def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     assert weighted_by_recording(single, plain)[2] == {}
 
 
+def test_a_noisier_recording_is_weighted_down_in_the_state_equations_too():
+    """d x/dt = u - 20 (x - theta) on four recordings, x measured in one of them with a
+    hundred times the others' noise: there the derivative estimated from x and x as a regressor
+    are both noisy, the recording's squared errors dominate least squares (the matched operator
+    applied, as the DE loop fits), and the gain comes out near 0; weighted by each recording's
+    error variance, refitted until the weights settle, the fit recovers it."""
+    from jaxdmd.select import _assemble, weighted_by_recording
+
+    recordings = tracking(4, 0.002, 20.0, 1001, (0.2, 0.05, 0.3, 0.1))
+    ds = recordings[2]
+    x = np.asarray(ds["x"])
+    noisy = x + 0.2 * np.ptp(x) * np.random.default_rng(7).normal(size=x.shape)
+    channels = {n: (noisy if n == "x" else np.asarray(ds[n])) for n in ds.names}
+    recordings[2] = Dataset.create(ds.t, channels, {n: ds.role(n) for n in ds.names})
+    recordings = [r.with_estimated_derivatives() for r in recordings]
+    problem, contract = de_problem(recordings, matched=True, weighted=True, library=("u", "theta"))
+    assert problem.operator is not None
+    state = search.init(problem, contract, jax.random.key(0), search.SearchConfig())
+    line = ln.Line(ast.parse("p[0] * u + p[1] * x + p[2] * theta", mode="eval").body, 3)
+    plain = _assemble(state, [line])
+    assert plain is not None
+    assert abs(plain.params[1] + 20.0) > 10.0, plain.params  # the premise: the gain is lost
+    weighted, fitted, report = weighted_by_recording(state, plain)
+    shares = report["per_recording"]["x"]
+    assert shares[2] < 0.01 and min(shares[k] for k in (0, 1, 3)) > 0.5, shares
+    assert abs(fitted.params[1] + 20.0) < 0.5 and abs(fitted.params[2] - 20.0) < 0.5
+    assert abs(fitted.params[0] - 1.0) < 0.05, fitted.params
+    # the noise weights of the estimator stay in: the recording weights multiply them
+    base = np.asarray(problem.weights)
+    w = np.asarray(weighted.problem.weights)[0]
+    ratio = w / base
+    groups = np.asarray(problem.groups)
+    for g in range(4):
+        assert np.allclose(ratio[groups == g], ratio[groups == g][0])
+
+
 # ----------------------------------------------------------------------------------------------
 # one recording: held-out time blocks take the recordings' place
 
