@@ -123,7 +123,7 @@ class SelectionConfig:
 
     candidates: int = 6
     tolerance: float = 0.25
-    steps: int = 4
+    steps: int = 12
     terms: int = 12
     substeps: int = 1
     blowup: float = 1e3
