@@ -307,6 +307,18 @@ def test_a_stand_in_as_large_as_the_true_line_is_replaced_where_the_likelihood_s
     assert [v["line"] for v in verdicts] == [line.text] and verdicts[0]["gain"] > 0
 
 
+def _one_recording_noisier() -> list[Dataset]:
+    """Four recordings of y = 20 (x - theta) (x tracking u), x measured in the third with a
+    hundred times the others' noise (a fifth of its range), derivatives estimated."""
+    recordings = tracking(4, 0.002, 20.0, 1001, (0.2, 0.05, 0.3, 0.1))
+    ds = recordings[2]
+    x = np.asarray(ds["x"])
+    noisy = x + 0.2 * np.ptp(x) * np.random.default_rng(7).normal(size=x.shape)
+    channels = {n: (noisy if n == "x" else np.asarray(ds[n])) for n in ds.names}
+    recordings[2] = Dataset.create(ds.t, channels, {n: ds.role(n) for n in ds.names})
+    return [r.with_estimated_derivatives() for r in recordings]
+
+
 def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     """y = 20 (x - theta) on four recordings; in one, x is measured with a hundred times the
     others' noise (its machine swung far, and the noise is a share of the range). Least squares
@@ -317,13 +329,7 @@ def test_a_recording_whose_regressors_are_noisier_is_weighted_down():
     from jaxdmd.problems import ae_problem
     from jaxdmd.select import _assemble, weighted_by_recording
 
-    recordings = tracking(4, 0.002, 20.0, 1001, (0.2, 0.05, 0.3, 0.1))
-    ds = recordings[2]
-    x = np.asarray(ds["x"])
-    noisy = x + 0.2 * np.ptp(x) * np.random.default_rng(7).normal(size=x.shape)
-    channels = {n: (noisy if n == "x" else np.asarray(ds[n])) for n in ds.names}
-    recordings[2] = Dataset.create(ds.t, channels, {n: ds.role(n) for n in ds.names})
-    recordings = [r.with_estimated_derivatives() for r in recordings]
+    recordings = _one_recording_noisier()
     _, contract = de_problem(recordings, matched=True, library=("u", "y", "theta"))
     problem, ae_contract = ae_problem(recordings, contract)
     state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
@@ -353,13 +359,7 @@ def test_a_noisier_recording_is_weighted_down_in_the_state_equations_too():
     error variance, refitted until the weights settle, the fit recovers it."""
     from jaxdmd.select import _assemble, weighted_by_recording
 
-    recordings = tracking(4, 0.002, 20.0, 1001, (0.2, 0.05, 0.3, 0.1))
-    ds = recordings[2]
-    x = np.asarray(ds["x"])
-    noisy = x + 0.2 * np.ptp(x) * np.random.default_rng(7).normal(size=x.shape)
-    channels = {n: (noisy if n == "x" else np.asarray(ds[n])) for n in ds.names}
-    recordings[2] = Dataset.create(ds.t, channels, {n: ds.role(n) for n in ds.names})
-    recordings = [r.with_estimated_derivatives() for r in recordings]
+    recordings = _one_recording_noisier()
     problem, contract = de_problem(recordings, matched=True, weighted=True, library=("u", "theta"))
     assert problem.operator is not None
     state = search.init(problem, contract, jax.random.key(0), search.SearchConfig())
