@@ -849,18 +849,27 @@ def _coupled_error(
     return float(np.mean(simulation_error(sim, recordings, targets)))
 
 
-def _assemble(state: SearchState, chosen: Sequence[ln.Line]) -> Equations | None:
+def _skeleton(state: SearchState, chosen: Sequence[ln.Line]) -> Skeleton | None:
+    """The loop's function written with the ``chosen`` lines, or None where it is not a valid
+    skeleton (lines composed from others carry their coefficients: several in one model can
+    outgrow the size limits)."""
     contract = state.contract
     source = ln.assemble(contract.function_name, contract.arguments, chosen, contract.outputs)
     try:
-        skeleton = _compile(source, contract)
+        return _compile(source, contract)
     except SkeletonError:
+        return None
+
+
+def _assemble(state: SearchState, chosen: Sequence[ln.Line]) -> Equations | None:
+    skeleton = _skeleton(state, chosen)
+    if skeleton is None:
         return None
     (result,) = fit_problem([skeleton], state.problem, jax.random.fold_in(state.key, 7))
     if result.error is not None:
         return None
     return Equations(
-        contract=contract,
+        contract=state.contract,
         source=skeleton.source,
         params=tuple(float(x) for x in result.params),
         losses=tuple(float(x) for x in result.losses),
@@ -1251,7 +1260,9 @@ def select_algebraic(
        variables are played in; the closed model tells them apart.) Where another variable's
        line has changed by then, the lines built from the others' lines
        (:func:`_composed_lines`) are built again from the lines the closed model now has and
-       join the options.
+       join the options. A line the whole model cannot be written with is not an option
+       (lines composed from others carry their coefficients, and several in one model can
+       outgrow the size limits; the choice would be lost with all the others).
 
     A variable the state equations do not use is not simulated: its line is the simplest within
     ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best
@@ -1341,6 +1352,13 @@ def select_algebraic(
             for line in _composed_lines(held.state, j, now) if now is not None else ():
                 options.setdefault(line.text, line)
         options.pop(current_lines[j].text, None)
+        # no line the whole model cannot be written with (lines composed from others carry
+        # their coefficients: several in one model can outgrow the size limits, and a choice
+        # that cannot be written is lost with all the others)
+        options = {
+            text: line for text, line in options.items()
+            if _skeleton(ae_state, [*current_lines[:j], line, *current_lines[j + 1 :]]) is not None
+        }  # fmt: skip
         if not options:
             continue
         candidates = list(options.values())
