@@ -1260,9 +1260,11 @@ def select_algebraic(
        variables are played in; the closed model tells them apart.) Where another variable's
        line has changed by then, the lines built from the others' lines
        (:func:`_composed_lines`) are built again from the lines the closed model now has and
-       join the options. A line the whole model cannot be written with is not an option
-       (lines composed from others carry their coefficients, and several in one model can
-       outgrow the size limits; the choice would be lost with all the others).
+       join the options; so does, for a variable the states use, the current line with each of
+       its terms dropped (a stand-in the derivative fit kept: on Table I's generator 31 seed
+       2, i_q's e'_q P_m), and after each change the new line's, until no shorter line is
+       taken (:func:`_closed_choice`). A line the whole model cannot be written with (the size
+       limits: lines composed from others carry their coefficients) is not an option.
 
     A variable the state equations do not use is not simulated: its line is the simplest within
     ``tolerance`` of the best held-out fit among its fit choice and the building blocks' best
@@ -1351,61 +1353,28 @@ def select_algebraic(
             now = assembled[key]
             for line in _composed_lines(held.state, j, now) if now is not None else ():
                 options.setdefault(line.text, line)
-        options.pop(current_lines[j].text, None)
-        # no line the whole model cannot be written with (lines composed from others carry
-        # their coefficients: several in one model can outgrow the size limits, and a choice
-        # that cannot be written is lost with all the others)
-        options = {
-            text: line for text, line in options.items()
-            if _skeleton(ae_state, [*current_lines[:j], line, *current_lines[j + 1 :]]) is not None
-        }  # fmt: skip
-        if not options:
-            continue
-        candidates = list(options.values())
-        trial_errors = _closed_trials(
-            held.state, current_lines, j, candidates, de, held.recordings, config,
-            held.played_from, fits, held.windows,
-        )  # fmt: skip
-        trials = [
-            (line, [*current_lines[:j], line, *current_lines[j + 1 :]], e)
-            for line, e in zip(candidates, trial_errors, strict=True)
-        ]
         entry = report["equations"][target]  # type: ignore[index]
-        entry["closed"] = [{"line": line.text, "dae_nrmse": e} for line, _, e in trials]
-        entry["dae_nrmse"] = next(
-            (e for line, _, e in trials if line.text == picked[j].text), error
-        )
-        best = min([error, *(e for *_, e in trials)])
-        now = current_lines[j]
-        near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
-        # the lines simpler than the current one that simulate no worse
-        simpler = {
-            t[0].text for t in near
-            if t[2] <= error and _complexity(t[0], states) < _complexity(now, states)
-        }  # fmt: skip
-        # whether a line fits the variable within tolerance, where that is asked: a simpler line
-        # that simulates no worse, and with a likelihood any line no larger than the current one
-        fits = {
-            t[0].text: _fits(held.state, j, t[0], now, config)
-            for t in near
-            if t[0].n_params <= now.n_params and (likelihood is not None or t[0].text in simpler)
-        }
-        eligible = [
-            t for t in near if t[2] <= error and (
-                t[2] * (1 + config.tolerance) < error
-                or (t[0].text in simpler and fits[t[0].text])
-            )
-        ]  # fmt: skip
-        if likelihood is not None:  # within the noise on both yardsticks, and not taken
-            undecided = [t for t in near if t not in eligible and fits.get(t[0].text, False)]
-            eligible += _likelier(
-                ae_state, undecided, eligible, current_lines, likelihood, likelihoods, states,
-                entry,
+        moved, before = False, error
+        # then, for a variable the states use, the current line with each of its terms dropped
+        # (a stand-in the derivative fit kept), again after each change, until no shorter line
+        # is taken (another variable's closed trials cannot tell its lines apart: its own
+        # held-out fit chose among its subsets)
+        while True:
+            for line in ln.without_each_summand(current_lines[j]) if target in used else ():
+                options.setdefault(line.text, line)
+            taken = _closed_choice(
+                held, ae_state, j, options, current_lines, error, de, config, fits, states,
+                likelihood, likelihoods, entry,
             )  # fmt: skip
-        if eligible:
-            _, current_lines, error = min(
-                eligible, key=lambda t: (_complexity(t[0], states), settled(t[2]))
+            if taken is None:
+                break
+            current_lines, error = taken
+            moved, options = True, {}
+        if "closed" in entry:  # the closed error with the variable's own choice
+            entry["dae_nrmse"] = next(
+                (c["dae_nrmse"] for c in entry["closed"] if c["line"] == picked[j].text), before
             )
+        if moved:
             changed.append(target)
     report["dae_nrmse"] = error
     report["changed"] = changed
@@ -1414,6 +1383,71 @@ def select_algebraic(
         report["changed"] = []
         return fit_choice, report
     return chosen, report
+
+
+def _closed_choice(
+    held: _Holdout, ae_state: SearchState, j: int, options: dict[str, ln.Line],
+    current_lines: list[ln.Line], error: float, de: Equations, config: SelectionConfig,
+    fits: dict[tuple[int, str], np.ndarray | None], states: set[str],
+    likelihood: Likelihood | None, likelihoods: dict[tuple[str, ...], float],
+    entry: dict[str, object],
+) -> tuple[list[ln.Line], float] | None:  # fmt: skip
+    """One step of :func:`select_algebraic`'s closed choice for variable ``j``: ``options``
+    (line texts to lines) each in place of the current line, simulated closed; the simplest of
+    those that simulate better by more than the tolerance, or no worse and simpler while they
+    fit the variable within the tolerance (or that ``likelihood`` rates above the current
+    lines): the lines and their error, or None. The trials go into ``entry["closed"]``."""
+    now = current_lines[j]
+    options = {
+        text: line for text, line in options.items()
+        if text != now.text
+        # no line the whole model cannot be written with (lines composed from others carry
+        # their coefficients: several in one model can outgrow the size limits, and a choice
+        # that cannot be written is lost with all the others)
+        and _skeleton(ae_state, [*current_lines[:j], line, *current_lines[j + 1 :]]) is not None
+    }  # fmt: skip
+    if not options:
+        return None
+    candidates = list(options.values())
+    trial_errors = _closed_trials(
+        held.state, current_lines, j, candidates, de, held.recordings, config,
+        held.played_from, fits, held.windows,
+    )  # fmt: skip
+    trials = [
+        (line, [*current_lines[:j], line, *current_lines[j + 1 :]], e)
+        for line, e in zip(candidates, trial_errors, strict=True)
+    ]
+    closed = entry.setdefault("closed", [])
+    closed += [{"line": line.text, "dae_nrmse": e} for line, _, e in trials]  # type: ignore[operator]
+    best = min([error, *(e for *_, e in trials)])
+    near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
+    # the lines simpler than the current one that simulate no worse
+    simpler = {
+        t[0].text for t in near
+        if t[2] <= error and _complexity(t[0], states) < _complexity(now, states)
+    }  # fmt: skip
+    # whether a line fits the variable within tolerance, where that is asked: a simpler line
+    # that simulates no worse, and with a likelihood any line no larger than the current one
+    fitting = {
+        t[0].text: _fits(held.state, j, t[0], now, config)
+        for t in near
+        if t[0].n_params <= now.n_params and (likelihood is not None or t[0].text in simpler)
+    }
+    eligible = [
+        t for t in near if t[2] <= error and (
+            t[2] * (1 + config.tolerance) < error
+            or (t[0].text in simpler and fitting[t[0].text])
+        )
+    ]  # fmt: skip
+    if likelihood is not None:  # within the noise on both yardsticks, and not taken
+        undecided = [t for t in near if t not in eligible and fitting.get(t[0].text, False)]
+        eligible += _likelier(
+            ae_state, undecided, eligible, current_lines, likelihood, likelihoods, states, entry
+        )
+    if not eligible:
+        return None
+    _, lines, e = min(eligible, key=lambda t: (_complexity(t[0], states), settled(t[2])))
+    return lines, e
 
 
 def _likelier(

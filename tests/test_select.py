@@ -311,6 +311,27 @@ def test_a_line_the_model_cannot_be_written_with_is_not_a_closed_candidate(monke
     assert report["changed"] == ["y"] and report["dae_nrmse"] < report["dae_nrmse_fit_choice"]
 
 
+def test_a_stand_in_term_the_fit_choice_kept_is_dropped_in_the_closed_choice(monkeypatch):
+    """y = 20 (x - sin theta); the fit choice x + sin theta + u carries a stand-in term u (it
+    fits a little noise). The variable's own choice and its front are hidden (the fit choice's
+    line again), so the closed choice has only the fit choice's line to start from: it must try
+    it with each term dropped and end on x + sin theta, which simulates no worse and fits as
+    well."""
+    from jaxdmd import select
+
+    fit_line = "p[0] * x + p[1] * jnp.sin(theta) + p[2] * u"
+    state, fit_choice, de, recordings = _sine_stand_in(0.45, fit_line)
+    (derived,), _ = ln.split_lines(fit_choice.source)
+    choose = select._choose
+    monkeypatch.setattr(select, "_choose", lambda *a, **k: (derived, choose(*a, **k)[1]))
+    monkeypatch.setattr(select, "_front", lambda *a, **k: [])
+    chosen, report = select.select_algebraic(state, fit_choice, de, recordings)
+    tried = {c["line"] for c in report["equations"]["y"]["closed"]}
+    assert {line.text for line in ln.without_each_summand(derived)} <= tried
+    assert select._terms(ln.split_lines(chosen.source)[0][0]) == {"p * x", "p * jnp.sin(theta)"}
+    assert report["changed"] == ["y"]
+
+
 def test_a_stand_in_as_large_as_the_true_line_is_replaced_where_the_likelihood_says_so():
     """y = 20 (x - sin theta), theta swinging to 0.45 rad: the fit choice's line x + theta has
     as many parameters as the true x + sin theta and is no larger, a stand-in that is right to
