@@ -760,6 +760,8 @@ def _single_errors(
         played = [a for a in state.contract.arguments if a in used and a != target]
         source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in group])
         try:
+            if len(group) > 1 and _too_large(len(recordings), len(group), recordings[0].n_samples):
+                raise ValueError("a batch too large for memory")  # halved below
             program = interp.lower(source, n_outputs=len(group))
         except (interp.LoweringError, ValueError):
             if len(group) > 1:
@@ -785,6 +787,19 @@ def _single_errors(
     return errors
 
 
+#: the most values a batch of rollouts side by side holds in one ``[rows, states, samples]``
+#: array (64 MB): longer recordings are simulated a few candidates at a time. Every row's
+#: arithmetic is its own (the programs are pointwise, the errors reduce along time), so the
+#: errors are the same to the bit however the candidates are split; the benchmark's recordings
+#: (4 x 1001 samples) never reach it.
+_BATCH_VALUES = 2**23
+
+
+def _too_large(rows: int, states: int, samples: int) -> bool:
+    """Whether a batch of rollouts of these dimensions is above :data:`_BATCH_VALUES`."""
+    return rows * states * samples > _BATCH_VALUES
+
+
 def _batch_errors(
     program: interp.Program, states: Sequence[str], rows: np.ndarray,
     recordings: Sequence[Dataset], measured: np.ndarray, config: SelectionConfig,
@@ -794,8 +809,25 @@ def _batch_errors(
     """The mean NRMSE of each of ``k`` candidates run side by side: parameter rows
     ``[k * B, P]`` (candidate after candidate, one row per recording) simulated on the ``B``
     ``recordings`` (and ``windows``, one per recording) and scored against ``measured``
-    ``[B, S, n]``. Returns ``[k]``."""
-    k = rows.shape[0] // len(recordings)
+    ``[B, S, n]``; ``algebraic``'s parameters, if one row per row of ``rows``, go with them.
+    A few candidates at a time where the batch would be large (:data:`_BATCH_VALUES`).
+    Returns ``[k]``."""
+    b = len(recordings)
+    k = rows.shape[0] // b
+    if k > 1 and _too_large(rows.shape[0], measured.shape[1], measured.shape[2]):
+        per = max(1, _BATCH_VALUES // (b * measured.shape[1] * measured.shape[2]))
+        parts = []
+        for lo in range(0, k, per):
+            part = slice(lo * b, min(k, lo + per) * b)
+            closed = algebraic
+            if algebraic is not None and algebraic[2].shape[0] == rows.shape[0]:
+                closed = (algebraic[0], algebraic[1], algebraic[2][part])
+            parts.append(
+                _batch_errors(
+                    program, states, rows[part], recordings, measured, config, windows, closed
+                )
+            )
+        return np.concatenate(parts)
     held = None if windows is None else list(windows) * k
     sim = simulate_host(
         program, states, rows, list(recordings) * k, algebraic=algebraic,
@@ -1113,6 +1145,8 @@ def _closed_errors(
         outputs = [f"y{k}" for k in range(len(names))]
         source = ln.assemble("closed", [*played, *names], closed, outputs)
         try:
+            if len(group) > 1 and _too_large(len(recordings), len(names), recordings[0].n_samples):
+                raise ValueError("a batch too large for memory")  # halved below
             program = interp.lower(source, n_outputs=len(names))
         except (interp.LoweringError, ValueError):
             if len(group) > 1:

@@ -890,3 +890,72 @@ def test_candidates_side_by_side_score_as_each_alone():
     assert np.all(np.isfinite(together))
     np.testing.assert_allclose(together, alone, rtol=1e-9)
     assert together[0] < together[1] and together[0] < together[2]
+
+
+def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_errors(monkeypatch):
+    """A batch of rollouts too large for memory is split, a few candidates at a time (the
+    side-by-side rows, the closed programs' outputs): each candidate's error is the same to the
+    bit as in one batch."""
+    from jaxdmd import select
+    from jaxdmd.select import (
+        SelectionConfig,
+        _assemble,
+        _closed_errors,
+        _closure,
+        _held_out,
+        _single_errors,
+        _states_closed_errors,
+        _with_constants,
+    )
+
+    recordings = _follower()
+    state, by_derivatives = _follower_search(recordings)
+    ae_state, ae = _closed_setup(recordings, by_derivatives)
+
+    def line(text: str) -> ln.Line:
+        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+
+    config = SelectionConfig()
+    candidates = [
+        line("p[0] * x + p[1] * y"), line("p[0] * u + p[1] * y"), line("p[0] * w"),
+        line("p[0] * (x - p[1] * y)"), line("p[0] * y + p[1] * x + p[2] * u"),
+        line("p[0] * x * y + p[1] * y"),
+    ]  # fmt: skip
+    de = _assemble(state, [line("p[0] * u + p[1] * x"), line("p[0] * w")])
+    assert de is not None
+    de = dataclasses.replace(de, params=(0.8, -0.8, 20.0))
+    held = _held_out(state, recordings)
+    closure = _closure(_held_out(ae_state, recordings).state, ln.split_lines(ae.source)[0], 3)
+    assert closure is not None
+    lines, mappings = ln.split_lines(by_derivatives.source)
+    fixed = [
+        ln.Line(_with_constants(lines[0], np.asarray(by_derivatives.params)[list(mappings[0])]), 0)
+    ]
+
+    def errors() -> list[np.ndarray]:
+        return [
+            _single_errors(state, 1, candidates, recordings, config),
+            _closed_errors(ae_state, 0, candidates, de, recordings, config),
+            _states_closed_errors(
+                held.state, 1, candidates, fixed, ("x", "y"), (closure[0], ("w",), closure[1]),
+                recordings, config,
+            ),
+        ]  # fmt: skip
+
+    rollouts = []  # the rows of each batch of rollouts
+    original = select.simulate_host
+
+    def counted(*args, **kwargs):
+        rollouts.append(np.shape(args[2])[0])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(select, "simulate_host", counted)
+    whole = errors()
+    in_one = list(rollouts)
+    rollouts.clear()
+    monkeypatch.setattr(select, "_BATCH_VALUES", 1)  # every batch above it: one at a time
+    split = errors()
+    assert len(rollouts) > len(in_one) and max(rollouts) < max(in_one)
+    for a, b in zip(whole, split, strict=True):
+        assert np.isfinite(a).sum() >= 4  # (w's own line cannot close w)
+        np.testing.assert_array_equal(a, b)
