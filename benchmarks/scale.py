@@ -27,11 +27,27 @@ state and algebraic equations) two stages of what follows the searches:
                    recordings and its gradient, the most memory-hungry stage of the default
                    discovery after the searches.
 
+With ``--discover`` the stages are not run; instead the whole default discovery
+(``jaxdmd.pipeline.discover`` with ``DiscoveryConfig()``: the three DE searches side by side,
+the choice by simulation, the refits, the state estimate, the AE loop and the joint refit) runs
+on the four recordings, and its memory is the peak of the whole process tree (this process and
+its search workers, sampled every 0.25 s from ``/proc``: the sum of their resident sets, and of
+their proportional sets, which count a page shared by k processes as 1/k in each). ``--rounds
+R`` and ``--joint-steps S`` cap the searches' rounds and the joint refit's BFGS steps (their
+defaults 15 and 1000): every stage still runs, on the same arrays, only fewer times, so the
+peak is the default's while the time is a fraction of it.
+
 Two ways to make n samples from the 10 s runs (``--mode``):
 
   long  the 0.01 s step kept, the run repeated end to end (with its fault events) until n
         samples: 1e5 samples are 1000 s. The estimator's band width stays 31 samples, so every
-        stage should be linear in n;
+        stage should be linear in n. Each copy starts at the first run's pre-fault state, so
+        the states jump at the joins (by up to their whole range: the governor and exciter
+        take the machine elsewhere in 10 s); the joins are events (the derivatives are
+        estimated piecewise between them), and a rollout over the whole recording still
+        crosses them. (The benchmark's grid cannot simply be simulated for 1000 s instead: it
+        loses synchronism within 100 s at three of the four operating points.) Before
+        2026-11-29 the joins were not events;
   fine  10 s kept, the run interpolated (linearly) to n samples: the band width grows like n
         (the windows are fixed in seconds), so the band stages grow like n^2 however built.
 
@@ -41,6 +57,7 @@ buffers included, monotone). Writes ``scale.json`` and ``scale.md`` (a table) to
 
     python benchmarks/scale.py --sizes 1000 10000 100000 [--mode long|fine] [--out DIR]
                                [--model runs/demo]
+    python benchmarks/scale.py --sizes 100000 --discover [--rounds 6 --joint-steps 3] [--jobs 1]
 """
 
 from __future__ import annotations
@@ -52,6 +69,7 @@ import platform
 import resource
 import subprocess
 import sys
+import threading
 import time
 import tracemalloc
 from pathlib import Path
@@ -118,8 +136,13 @@ def recordings(cache: Path, n: int, mode: str, seed: int = 0) -> list:
             copies = -(-n // len(t0))
             t = np.concatenate([t0 + k * period for k in range(copies)])[:n]
             v = np.concatenate([v0] * copies)[:n]
+            # each copy starts where the first run did, not where the last one ended: the
+            # states jump there (by up to their whole range), so each join is an event too
             events = tuple(
-                e + k * period for k in range(copies) for e in ev0 if e + k * period < t[-1]
+                e
+                for k in range(copies)
+                for e in ((k * period,) if k else ()) + tuple(e0 + k * period for e0 in ev0)
+                if e < t[-1]
             )
         else:
             t = np.linspace(t0[0], t0[-1], n)
@@ -208,6 +231,185 @@ def child(cache: Path, n: int, mode: str, model_dir: Path | None = None) -> dict
     }
 
 
+def _tree(root: int) -> list[int]:
+    """``root`` and every process below it (read from /proc)."""
+    parents: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        parents.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        out.append(pid)
+        todo.extend(parents.get(pid, ()))
+    return out
+
+
+def _kib(pid: int, path: str, field: str) -> int:
+    try:
+        with open(f"/proc/{pid}/{path}") as f:
+            for line in f:
+                if line.startswith(field):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+class TreeMemory:
+    """The peak over time of the memory of this process and its children, sampled in a thread:
+    the sum of their resident sets (VmRSS) and of their proportional sets (Pss)."""
+
+    def __init__(self, every: float = 0.25) -> None:
+        self.every, self.rss_mb, self.pss_mb, self.processes = every, 0.0, 0.0, 1
+        self.window_mb = self.last_mb = 0.0  # the peak PSS since window() was last called; now
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            pids = _tree(os.getpid())
+            rss = sum(_kib(p, "status", "VmRSS:") for p in pids) / 1024
+            pss = sum(_kib(p, "smaps_rollup", "Pss:") for p in pids) / 1024
+            self.rss_mb, self.pss_mb = max(self.rss_mb, rss), max(self.pss_mb, pss)
+            self.window_mb, self.last_mb = max(self.window_mb, pss), pss
+            self.processes = max(self.processes, len(pids))
+            self._stop.wait(self.every)
+
+    def window(self) -> float:
+        """The peak PSS since the last call (then starts a new window): the last sample if
+        none was taken since."""
+        peak, self.window_mb = max(self.window_mb, self.last_mb), 0.0
+        return peak
+
+    def __enter__(self) -> TreeMemory:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+class _Progress:
+    """The discovery's loops and rounds on stderr, each with the time since the start."""
+
+    def __init__(self, memory: TreeMemory) -> None:
+        self.start, self.memory, self.rounds = time.perf_counter(), memory, 0
+        self.timeline: list[tuple[float, float, str]] = []  # (seconds, peak PSS MB, what ended)
+
+    def _say(self, text: str) -> None:
+        elapsed = time.perf_counter() - self.start
+        window = self.memory.window()
+        self.timeline.append((round(elapsed, 1), round(window, 1), text))
+        print(
+            f"[{elapsed:7.1f} s, peak {window:.0f} MB since the last line] {text}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def loop_started(self, name, state) -> None:
+        self._say(f"{name} started")
+
+    def round(self, name, state, report) -> None:
+        self.rounds += 1
+        self._say(f"{name} round {report.round}: best {report.best_score:.4g}")
+
+    def message(self, text: str) -> None:
+        self._say(text)
+
+
+def discover_child(
+    cache: Path, n: int, mode: str, rounds: int | None, joint_steps: int | None,
+    jobs: int | None = None,
+) -> dict:  # fmt: skip
+    """The whole default discovery on four recordings of n samples; its time and the peak
+    memory of the process tree."""
+    import dataclasses
+
+    import jax
+
+    from jaxdmd.pipeline import DiscoveryConfig, discover
+
+    datasets = recordings(cache, n, mode)
+    config = DiscoveryConfig()
+    if rounds is not None:
+        config = dataclasses.replace(
+            config, search=dataclasses.replace(config.search, max_rounds=rounds)
+        )
+    if joint_steps is not None:
+        config = dataclasses.replace(config, ae_joint_steps=joint_steps)
+    if jobs is not None:
+        config = dataclasses.replace(config, jobs=jobs)
+    with TreeMemory() as memory:
+        progress = _Progress(memory)
+        t_start = time.perf_counter()
+        model = discover(datasets, config=config, key=jax.random.key(0), observer=progress)
+        seconds = time.perf_counter() - t_start
+        progress.message("discovery done")
+    return {
+        "n": n,
+        "mode": mode,
+        "recordings": len(datasets),
+        "events_per_recording": len(datasets[0].events),
+        "max_rounds": config.search.max_rounds,
+        "joint_steps": config.ae_joint_steps,
+        "searches": config.searches,
+        "jobs": config.processes,
+        "rounds_run": progress.rounds,
+        "seconds": round(seconds, 1),
+        "tree_peak_rss_mb": round(memory.rss_mb, 1),
+        "tree_peak_pss_mb": round(memory.pss_mb, 1),
+        "processes": memory.processes,
+        "self_maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "timeline": progress.timeline,
+        "report_seconds": _seconds(model.report),
+        "equations": {
+            "de": model.de.readable() if hasattr(model.de, "readable") else str(model.de),
+            "ae": model.ae.readable()
+            if model.ae is not None and hasattr(model.ae, "readable")
+            else str(model.ae),
+        },
+    }
+
+
+def _seconds(report: object, path: str = "") -> dict[str, float]:
+    """Every wall time in the discovery's report (keys holding "seconds"), by its path."""
+    out: dict[str, float] = {}
+    if isinstance(report, dict):
+        for k, v in report.items():
+            where = f"{path}.{k}" if path else str(k)
+            if "seconds" in str(k) and isinstance(v, int | float):
+                out[where] = round(float(v), 1)
+            else:
+                out.update(_seconds(v, where))
+    return out
+
+
+def discover_table(results: list[dict]) -> str:
+    rows = [
+        "| n | recordings | round limit | rounds run | joint steps | jobs | processes | time "
+        "| peak PSS (tree) | peak RSS (tree) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        if "error" in r:
+            rows.append(f"| {r['n']} | failed: {r['error'][:80]} |")
+            continue
+        rows.append(
+            f"| {r['n']} | {r['recordings']} | {r['max_rounds']} | {r['rounds_run']} "
+            f"| {r['joint_steps']} | {r['jobs']} | {r['processes']} | {r['seconds']:.0f} s "
+            f"| **{r['tree_peak_pss_mb']:.0f} MB** | {r['tree_peak_rss_mb']:.0f} MB |"
+        )
+    return "\n".join(rows) + "\n"
+
+
 def table(results: list[dict]) -> str:
     stages = [*STAGES, *(s for s in POST_STAGES if any(s in r.get("stages", {}) for r in results))]
     head = "| n | mode | band | " + " | ".join(stages) + " | peak RSS |"
@@ -243,12 +445,31 @@ def main() -> None:
         "--model", type=Path, default=None,
         help="a finished run's folder: also measure the state estimate and the joint refit",
     )  # fmt: skip
+    ap.add_argument(
+        "--discover", action="store_true",
+        help="run the whole default discovery instead of the stages (memory of the process tree)",
+    )  # fmt: skip
+    ap.add_argument("--rounds", type=int, default=None, help="with --discover: round limit")
+    ap.add_argument(
+        "--joint-steps", type=int, default=None, help="with --discover: the joint refit's steps"
+    )
+    ap.add_argument(
+        "--jobs", type=int, default=None,
+        help="with --discover: processes at once (default: the cores, as discover's default)",
+    )  # fmt: skip
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    render = discover_table if args.discover else table
     args.out.mkdir(parents=True, exist_ok=True)
     cache = args.out / "source.npz"
     if args.child is not None:
-        print(json.dumps(child(cache, args.child, args.mode, args.model)))
+        if args.discover:
+            result = discover_child(
+                cache, args.child, args.mode, args.rounds, args.joint_steps, args.jobs
+            )
+        else:
+            result = child(cache, args.child, args.mode, args.model)
+        print(json.dumps(result))
         return
     source(cache)
     results = []
@@ -263,29 +484,35 @@ def main() -> None:
             "--out",
             str(args.out),
             *(["--model", str(args.model)] if args.model is not None else []),
+            *(["--discover"] if args.discover else []),
+            *(["--rounds", str(args.rounds)] if args.rounds is not None else []),
+            *(["--joint-steps", str(args.joint_steps)] if args.joint_steps is not None else []),
+            *(["--jobs", str(args.jobs)] if args.jobs is not None else []),
         ]
         t_start = time.perf_counter()
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+            # the child's progress (stderr) goes to the terminal; its result is its last line
+            proc = subprocess.run(
+                cmd, stdout=subprocess.PIPE, stderr=None, text=True, timeout=args.timeout
+            )
         except subprocess.TimeoutExpired:
             results.append({"n": n, "mode": args.mode, "error": f"timeout after {args.timeout} s"})
             continue
         if proc.returncode != 0:
-            tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
-            results.append({"n": n, "mode": args.mode, "error": tail[0]})
+            results.append({"n": n, "mode": args.mode, "error": f"exit {proc.returncode}"})
         else:
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             r["process_seconds"] = round(time.perf_counter() - t_start, 1)
             results.append(r)
-        print(table(results[-1:]).splitlines()[-1], flush=True)
+        print(render(results[-1:]).splitlines()[-1], flush=True)
     report = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "results": results,
     }
     (args.out / "scale.json").write_text(json.dumps(report, indent=2) + "\n")
-    (args.out / "scale.md").write_text(table(results))
-    print(table(results))
+    (args.out / "scale.md").write_text(render(results))
+    print(render(results))
 
 
 if __name__ == "__main__":
