@@ -792,20 +792,11 @@ def test_a_stand_in_is_replaced_in_the_closed_model():
     assert entry["dae_nrmse"] * 1.05 < entry["dae_nrmse_current"]
 
 
-def test_closed_candidates_batched_in_one_program_score_as_each_alone():
-    """The closed stage simulates a batch of lines as rows of one program holding all their
-    terms (zero where a row's line lacks one): the errors are those of each line simulated
-    alone, and a line that is not a sum of one-parameter terms runs on its own."""
-    from jaxdmd.select import (
-        SelectionConfig,
-        _closure,
-        _held_out,
-        _states_closed_errors,
-        _with_constants,
-    )
+def _closed_model_setup(recordings, state, by_derivatives):
+    """The closed-model stage's inputs on the follower: the AE search state, the DE search
+    held out by recording, w's closure and d x/dt's line with its constants written in."""
+    from jaxdmd.select import _closure, _held_out, _with_constants
 
-    recordings = _follower()
-    state, by_derivatives = _follower_search(recordings)
     ae_state, ae = _closed_setup(recordings, by_derivatives)
     held = _held_out(state, recordings)
     closure = _closure(_held_out(ae_state, recordings).state, ln.split_lines(ae.source)[0], 3)
@@ -814,6 +805,18 @@ def test_closed_candidates_batched_in_one_program_score_as_each_alone():
     fixed = [
         ln.Line(_with_constants(lines[0], np.asarray(by_derivatives.params)[list(mappings[0])]), 0)
     ]
+    return ae_state, held, closure, fixed
+
+
+def test_closed_candidates_batched_in_one_program_score_as_each_alone():
+    """The closed stage simulates a batch of lines as rows of one program holding all their
+    terms (zero where a row's line lacks one): the errors are those of each line simulated
+    alone, and a line that is not a sum of one-parameter terms runs on its own."""
+    from jaxdmd.select import SelectionConfig, _states_closed_errors
+
+    recordings = _follower()
+    state, by_derivatives = _follower_search(recordings)
+    _, held, closure, fixed = _closed_model_setup(recordings, state, by_derivatives)
 
     def line(text: str) -> ln.Line:
         return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
@@ -901,16 +904,13 @@ def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_error
         SelectionConfig,
         _assemble,
         _closed_errors,
-        _closure,
-        _held_out,
         _single_errors,
         _states_closed_errors,
-        _with_constants,
     )
 
     recordings = _follower()
     state, by_derivatives = _follower_search(recordings)
-    ae_state, ae = _closed_setup(recordings, by_derivatives)
+    ae_state, held, closure, fixed = _closed_model_setup(recordings, state, by_derivatives)
 
     def line(text: str) -> ln.Line:
         return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
@@ -924,13 +924,6 @@ def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_error
     de = _assemble(state, [line("p[0] * u + p[1] * x"), line("p[0] * w")])
     assert de is not None
     de = dataclasses.replace(de, params=(0.8, -0.8, 20.0))
-    held = _held_out(state, recordings)
-    closure = _closure(_held_out(ae_state, recordings).state, ln.split_lines(ae.source)[0], 3)
-    assert closure is not None
-    lines, mappings = ln.split_lines(by_derivatives.source)
-    fixed = [
-        ln.Line(_with_constants(lines[0], np.asarray(by_derivatives.params)[list(mappings[0])]), 0)
-    ]
 
     def errors() -> list[np.ndarray]:
         return [
