@@ -702,10 +702,12 @@ def _chain(partial: Any, tangent: np.ndarray, careful: bool) -> np.ndarray:
     """``partial * tangent`` with the partial ``[R|1, N|1]`` (or a number) over the tangent's
     parameter axis; ``careful``: a zero factor gives 0 even against an infinite one."""
     if np.ndim(partial) == 0:
-        return tangent if partial == 1.0 else partial * tangent
-    partial = partial[:, None, :]
+        if partial == 1.0:
+            return tangent
+    else:
+        partial = partial[:, None, :]
     term = partial * tangent
-    if careful and not np.all(np.isfinite(term)):
+    if careful and not np.all(np.isfinite(term)):  # a number too: x / 0 has the partial inf
         term = np.where((partial == 0) | (tangent == 0), 0.0, term)
     return term
 

@@ -189,6 +189,9 @@ def _expressions() -> st.SearchStrategy[str]:
 # -inf and -0.0: a base of -inf (x / -0.0) and one of -0.0 (-(x * 0)) where x > 0
 @example(["(x / -0.0) ** 0.5"], 0)
 @example(["(-(x * 0.0)) ** 0.5"], 0)
+# a parameter divided by the constant 0: the partial derivative is the number inf, and its
+# product with the other parameters' zero tangents must be 0 on the host too, as in JAX
+@example(["(p[1] / 0.0)"], 0)
 def test_random_expressions(outputs: list[str], seed: int) -> None:
     source = (
         "def f(x, y, u, p):\n    t = "
