@@ -371,10 +371,8 @@ def discover_child(
         "timeline": progress.timeline,
         "report_seconds": _seconds(model.report),
         "equations": {
-            "de": model.de.readable() if hasattr(model.de, "readable") else str(model.de),
-            "ae": model.ae.readable()
-            if model.ae is not None and hasattr(model.ae, "readable")
-            else str(model.ae),
+            "de": model.de.readable(),
+            "ae": None if model.ae is None else model.ae.readable(),
         },
     }
 

@@ -792,6 +792,11 @@ def test_a_stand_in_is_replaced_in_the_closed_model():
     assert entry["dae_nrmse"] * 1.05 < entry["dae_nrmse_current"]
 
 
+def _line(text: str) -> ln.Line:
+    """A candidate line from its text, its parameters numbered from 0."""
+    return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+
+
 def _closed_model_setup(recordings, state, by_derivatives):
     """The closed-model stage's inputs on the follower: the AE search state, the DE search
     held out by recording, w's closure and d x/dt's line with its constants written in."""
@@ -818,8 +823,7 @@ def test_closed_candidates_batched_in_one_program_score_as_each_alone():
     state, by_derivatives = _follower_search(recordings)
     _, held, closure, fixed = _closed_model_setup(recordings, state, by_derivatives)
 
-    def line(text: str) -> ln.Line:
-        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+    line = _line
 
     candidates = [
         line("p[0] * x + p[1] * y"), line("p[0] * u + p[1] * y"), line("p[0] * w"),
@@ -860,8 +864,7 @@ def test_candidates_side_by_side_score_as_each_alone():
     state, _ = _follower_search(recordings)
     ae_state, _ = _closed_setup(recordings, search.final_equations(state))
 
-    def line(text: str) -> ln.Line:
-        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+    line = _line
 
     config = SelectionConfig()
     # d y/dt as the played-in stage sees it
@@ -912,8 +915,7 @@ def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_error
     state, by_derivatives = _follower_search(recordings)
     ae_state, held, closure, fixed = _closed_model_setup(recordings, state, by_derivatives)
 
-    def line(text: str) -> ln.Line:
-        return ln.renumbered(ln.Line(ast.parse(text, mode="eval").body, 0))
+    line = _line
 
     config = SelectionConfig()
     candidates = [
