@@ -35,7 +35,9 @@ its search workers, sampled every 0.25 s from ``/proc``: the sum of their reside
 their proportional sets, which count a page shared by k processes as 1/k in each). ``--rounds
 R`` and ``--joint-steps S`` cap the searches' rounds and the joint refit's BFGS steps (their
 defaults 15 and 1000): every stage still runs, on the same arrays, only fewer times, so the
-peak is the default's while the time is a fraction of it.
+peak is the default's while the time is a fraction of it. The searches' states are written to
+``--out/checkpoints/<n>/`` after every round; a rerun into the same ``--out`` resumes them (as
+finished, once they are), so a change to what follows the searches is measured without them.
 
 Two ways to make n samples from the 10 s runs (``--mode``):
 
@@ -327,10 +329,10 @@ class _Progress:
 
 def discover_child(
     cache: Path, n: int, mode: str, rounds: int | None, joint_steps: int | None,
-    jobs: int | None = None,
+    jobs: int | None = None, checkpoints: Path | None = None,
 ) -> dict:  # fmt: skip
     """The whole default discovery on four recordings of n samples; its time and the peak
-    memory of the process tree."""
+    memory of the process tree. ``checkpoints``: the searches' states (resumed if there)."""
     import dataclasses
 
     import jax
@@ -350,7 +352,10 @@ def discover_child(
     with TreeMemory() as memory:
         progress = _Progress(memory)
         t_start = time.perf_counter()
-        model = discover(datasets, config=config, key=jax.random.key(0), observer=progress)
+        model = discover(
+            datasets, config=config, key=jax.random.key(0), observer=progress,
+            checkpoints=checkpoints,
+        )  # fmt: skip
         seconds = time.perf_counter() - t_start
         progress.message("discovery done")
     return {
@@ -463,8 +468,9 @@ def main() -> None:
     if args.child is not None:
         if args.discover:
             result = discover_child(
-                cache, args.child, args.mode, args.rounds, args.joint_steps, args.jobs
-            )
+                cache, args.child, args.mode, args.rounds, args.joint_steps, args.jobs,
+                args.out / "checkpoints" / str(args.child),
+            )  # fmt: skip
         else:
             result = child(cache, args.child, args.mode, args.model)
         print(json.dumps(result))

@@ -55,6 +55,8 @@ from jaxdmd.search import Equations
 
 __all__ = ["refit_finalists", "refit_simulation"]
 
+_CHUNK = 256  # sample intervals whose sensitivities are held at once (Simulator.factor)
+
 
 def _played(recordings: Sequence[Dataset], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Left and right values ``[B, n - 1, A]`` of the played-in channels on each interval
@@ -114,18 +116,20 @@ class _Simulator:
         self.scale = jnp.asarray(select._range(y))
         self.bound = jnp.asarray(blowup * (1.0 + np.max(np.abs(y), axis=2)))  # [B, S]
         self.substeps = substeps
+        self._chunked: tuple[jax.Array, ...] | None = None  # factor's inputs, laid out once
+        self._factor: Callable[..., jax.Array] | None = None
         # one program for every scoring evaluation (op by op, each cost seconds of compiling)
         self._compiled = jax.jit(self.simulate)
 
-    def _rollout(
-        self, theta: jax.Array, names: Sequence[str], left: jax.Array, right: jax.Array,
-        x0: jax.Array, bound: jax.Array, closed: bool,
-        hold: jax.Array | None = None, reference: jax.Array | None = None,
+    def _advance(
+        self, theta: jax.Array, x: jax.Array, bound: jax.Array, interval: tuple[jax.Array, ...],
+        names: Sequence[str], closed: bool,
     ) -> jax.Array:  # fmt: skip
-        """One recording's simulated states ``[S, n]``; a state that leaves ``bound`` is held
-        there (finite, so the fit sees a large residual rather than a NaN). ``hold`` and
-        ``reference`` (``[n - 1]``, ``[n - 1, S]``): the states after each step are the
-        reference's where ``hold`` is set (before a held-out block starts)."""
+        """One recording's states ``[S]`` one sample interval on: ``interval`` is the step
+        ``h``, the played-in channels' left and right values ``[A]`` and, for a held-out
+        block, whether the reference ``[S]`` (the next element) replaces the result. A state
+        that leaves ``bound`` is held there (finite, so the fit sees a large residual rather
+        than a NaN)."""
         de_p, ae_p = theta[: self.n_de], theta[self.n_de :]
         de_p = de_p if self.n_de else jnp.zeros(1)
         ae_p = ae_p if ae_p.size else jnp.zeros(1)
@@ -142,17 +146,29 @@ class _Simulator:
             out = self.de_skeleton.fn(*args, de_p)
             return jnp.stack([jnp.broadcast_to(jnp.asarray(d, dtype=x.dtype), ()) for d in out])
 
+        h, lo, hi = interval[:3]
+        dt = h / self.substeps
+        for m in range(self.substeps):  # Heun's method, as select.simulate_host
+            w0, w1 = m / self.substeps, (m + 1) / self.substeps
+            k1 = field(x, (1 - w0) * lo + w0 * hi)
+            k2 = field(x + dt * k1, (1 - w1) * lo + w1 * hi)
+            x = x + 0.5 * dt * (k1 + k2)
+        x = jnp.where(jnp.isfinite(x), jnp.clip(x, -bound, bound), bound)
+        if len(interval) > 3:
+            x = jnp.where(interval[3], interval[4], x)
+        return x
+
+    def _rollout(
+        self, theta: jax.Array, names: Sequence[str], left: jax.Array, right: jax.Array,
+        x0: jax.Array, bound: jax.Array, closed: bool,
+        hold: jax.Array | None = None, reference: jax.Array | None = None,
+    ) -> jax.Array:  # fmt: skip
+        """One recording's simulated states ``[S, n]`` (:meth:`_advance` from ``x0``).
+        ``hold`` and ``reference`` (``[n - 1]``, ``[n - 1, S]``): the states after each step
+        are the reference's where ``hold`` is set (before a held-out block starts)."""
+
         def step(x: jax.Array, interval: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
-            h, lo, hi = interval[:3]
-            dt = h / self.substeps
-            for m in range(self.substeps):  # Heun's method, as select.simulate_host
-                w0, w1 = m / self.substeps, (m + 1) / self.substeps
-                k1 = field(x, (1 - w0) * lo + w0 * hi)
-                k2 = field(x + dt * k1, (1 - w1) * lo + w1 * hi)
-                x = x + 0.5 * dt * (k1 + k2)
-            x = jnp.where(jnp.isfinite(x), jnp.clip(x, -bound, bound), bound)
-            if hold is not None:
-                x = jnp.where(interval[3], interval[4], x)
+            x = self._advance(theta, x, bound, interval, names, closed)
             return x, x
 
         inputs = (self.h, left, right) if hold is None else (self.h, left, right, hold, reference)
@@ -194,6 +210,87 @@ class _Simulator:
             parts.append((r * w).ravel())
         return jnp.concatenate(parts)
 
+    def factor(self, weight: np.ndarray) -> Callable[[jax.Array], jax.Array]:
+        """The function ``theta -> `` upper-triangular factor ``[P + 1, P + 1]`` of
+        ``[J, r]``: the residual :meth:`residual` (``weight`` ``[B, n]``) beside its
+        Jacobian, without either.
+
+        The two simulations run with their forward sensitivities (one tangent per parameter,
+        carried step by step), ``_CHUNK`` sample intervals at a time; each chunk's rows of
+        ``[J, r]`` are folded into the factor by a QR decomposition and dropped, so the
+        working memory does not depend on the recordings' length (the chunked inputs are
+        laid out here, once per ``weight``). With ``[[R, z], [0, rho]]`` the factor,
+        ``|J d + r|^2 = |R d + z|^2 + rho^2`` for every step ``d``."""
+        b, _, n = self.y.shape
+        steps = n - 1
+        chunks = -(-steps // _CHUNK)
+        pad = chunks * _CHUNK - steps
+
+        def timed(a: np.ndarray) -> jax.Array:  # [B, n - 1, ...] -> [chunks, _CHUNK, B, ...]
+            a = np.moveaxis(np.asarray(a, dtype=float), 1, 0)
+            a = np.concatenate([a, np.zeros((pad, *a.shape[1:]))])
+            return jnp.asarray(a.reshape(chunks, _CHUNK, *a.shape[1:]))
+
+        if self._chunked is None:  # what does not depend on the weight, laid out once
+            h = np.concatenate([np.asarray(self.h), np.zeros(pad)]).reshape(chunks, _CHUNK)
+            y = timed(np.swapaxes(np.asarray(self.y)[:, :, 1:], 1, 2))
+            played = [timed(a) for pair in (self.closed, self.open) for a in pair]
+            self._chunked = (jnp.asarray(h), y, *played)
+        weight = np.broadcast_to(np.asarray(weight, dtype=float), (b, n))
+        norm = 1.0 / np.asarray(self.scale) / np.sqrt(n)  # [B, S]
+        w = timed(weight[:, 1:, None] * norm[:, None, :])  # [chunks, _CHUNK, B, S]
+        w0 = jnp.asarray(weight[:, 0, None] * norm)
+        h, y, *played = self._chunked
+        if self._factor is None:
+            self._factor = jax.jit(self._fold)
+        return lambda theta: self._factor(theta, w0, h, y, w, *played)
+
+    def _fold(self, theta: jax.Array, w0: jax.Array, *inputs: jax.Array) -> jax.Array:
+        """:meth:`factor`'s program: ``w0`` the first sample's weights ``[B, S]``, ``inputs``
+        the chunked steps, states, weights and played-in channels (closed, then open)."""
+        p = theta.size
+        b, s, _ = self.y.shape
+        runs = ((self.closed_names, True), (self.open_names, False))
+
+        def advance(names: Sequence[str], closed: bool) -> Callable[..., tuple[jax.Array, ...]]:
+            def one(x: jax.Array, dx: jax.Array, bound: jax.Array, h: jax.Array,
+                    lo: jax.Array, hi: jax.Array) -> tuple[jax.Array, jax.Array]:  # fmt: skip
+                def move(q: jax.Array, z: jax.Array) -> jax.Array:
+                    return self._advance(q, z, bound, (h, lo, hi), names, closed)
+
+                x_next, tangent = jax.linearize(move, theta, x)
+                return x_next, jax.vmap(tangent)(jnp.eye(p, dtype=theta.dtype), dx)
+
+            return jax.vmap(one, in_axes=(0, 0, 0, None, 0, 0))
+
+        movers = tuple(advance(names, closed) for names, closed in runs)
+
+        def fold(factor: jax.Array, J: jax.Array, r: jax.Array) -> jax.Array:
+            rows = jnp.concatenate([J.reshape(-1, p), r.reshape(-1, 1)], axis=1)
+            return jnp.linalg.qr(jnp.concatenate([factor, rows]), mode="r")[: p + 1]
+
+        def chunk(carry: tuple[jax.Array, ...], at: tuple[jax.Array, ...]):
+            def step(state: tuple[jax.Array, ...], at: tuple[jax.Array, ...]):
+                h, y, w, *uv = at
+                out, rs, Js = [], [], []
+                for i, mover in enumerate(movers):
+                    lo, hi = uv[2 * i], uv[2 * i + 1]
+                    x, dx = mover(state[2 * i], state[2 * i + 1], self.bound, h, lo, hi)
+                    out += [x, dx]
+                    rs.append((x - y) * w)  # [B, S]
+                    Js.append(jnp.swapaxes(dx, 1, 2) * w[:, :, None])  # [B, S, P]
+                return tuple(out), (jnp.stack(rs), jnp.stack(Js))
+
+            state, (r, J) = jax.lax.scan(step, carry[:-1], at)
+            return (*state, fold(carry[-1], J, r)), None
+
+        zeros = jnp.zeros((b, p, s), theta.dtype)
+        r0 = (self.x0 - self.y[:, :, 0]) * w0  # the same for both simulations
+        factor = fold(jnp.zeros((p + 1, p + 1), theta.dtype), jnp.zeros((2, b, s, p)),
+                      jnp.stack([r0, r0]))  # fmt: skip
+        carry = (self.x0, zeros, self.x0, zeros, factor)
+        return jax.lax.scan(chunk, carry, inputs)[0][-1]
+
     def errors(self, theta: jax.Array) -> np.ndarray:
         """NRMSE ``[2, B, S]`` of the closed and the open rollouts (inf where one diverged);
         with time blocks, over each row's block (scaled by the whole recording's range)."""
@@ -207,6 +304,48 @@ class _Simulator:
             hit = np.any(beyond, axis=2)
             out.append(np.where(hit, np.inf, err))
         return np.stack(out)
+
+
+def _levenberg_marquardt(
+    factor: Callable[[jax.Array], jax.Array], theta0: jax.Array, max_steps: int,
+    rtol: float = 1e-8, atol: float = 1e-8,
+) -> tuple[jax.Array, int]:  # fmt: skip
+    """The parameters that minimise ``|r(theta)|^2`` from ``theta0``, and the steps taken:
+    Levenberg-Marquardt with a classical trust region (optimistix's rules: the damping
+    ``lambda`` starts at 1, is divided by 3.5 after a step whose actual reduction is within
+    1 % of the predicted one, and multiplied by 4 after one that achieves less than 1 %,
+    which is rejected). ``factor(theta)`` is :meth:`_Simulator.factor`: each damped step
+    solves ``min |R d + z|^2 + lambda |d|^2`` on it. Stops when an accepted step changes every
+    parameter and the sum of squares by less than ``atol + rtol`` times their new size."""
+    theta = np.asarray(theta0, dtype=float)
+    p = theta.size
+
+    def split(f: jax.Array) -> tuple[np.ndarray, np.ndarray, float]:
+        f = np.asarray(f)
+        R, z = f[:p, :p], f[:p, p]
+        return R, z, float(z @ z + f[p, p] ** 2) if np.all(np.isfinite(f)) else np.inf
+
+    R, z, cost = split(factor(jnp.asarray(theta)))
+    lam, steps = 1.0, 0
+    while steps < max_steps and np.isfinite(cost):
+        steps += 1
+        A = np.concatenate([R, np.sqrt(lam) * np.eye(p)])
+        d = np.linalg.lstsq(A, np.concatenate([-z, np.zeros(p)]), rcond=None)[0]
+        predicted = float(z @ z - np.sum((R @ d + z) ** 2))
+        trial = theta + d
+        R_new, z_new, new = split(factor(jnp.asarray(trial)))
+        ratio = (cost - new) / predicted if predicted > 0 else -np.inf
+        if ratio > 0.99:
+            lam /= 3.5
+        elif not ratio >= 0.01:
+            lam *= 4.0
+            continue
+        small = np.all(np.abs(d) < atol + rtol * np.abs(trial))
+        settled = abs(cost - new) < atol + rtol * abs(new)
+        theta, R, z, cost = trial, R_new, z_new, new
+        if small and settled:
+            break
+    return jnp.asarray(theta), steps
 
 
 def refit_simulation(
@@ -235,8 +374,6 @@ def refit_simulation(
     NRMSE before and after, and the seconds. ``fold_params``: also each left-out fold's fitted
     parameters (``report["fold_params"]``, DE then AE, one list per fold; for a jackknife).
     """
-    import optimistix as optx
-
     config = config or select.SelectionConfig()
     start = time.perf_counter()
     train = list(train)
@@ -259,14 +396,11 @@ def refit_simulation(
     if not np.all(np.isfinite(before)):
         return done("given: the model does not simulate every training recording")
 
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
-
-    @jax.jit
-    def fit(theta: jax.Array, weight: jax.Array) -> tuple[jax.Array, jax.Array]:
-        solution = optx.least_squares(
-            sim.residual, solver, theta, args=weight, max_steps=max_steps, throw=False
-        )
-        return solution.value, solution.stats["num_steps"]
+    def fit(theta: jax.Array, weight: jax.Array) -> tuple[jax.Array, int]:
+        """Fitted from ``theta`` with ``weight`` per recording or per sample (one program)."""
+        weight = np.asarray(weight)
+        weight = weight[:, None] if weight.ndim == 1 else weight
+        return _levenberg_marquardt(sim.factor(weight), theta, max_steps)
 
     b = len(train)
     folds: list[list[float]] = []

@@ -69,6 +69,51 @@ def test_a_model_that_cannot_be_improved_is_kept():
     assert report["held_out"] == "recordings"
 
 
+def test_the_fits_factor_is_that_of_the_residual_and_its_jacobian(monkeypatch):
+    """The fit never forms the residual's Jacobian: it folds the sensitivities into a QR
+    factor a chunk of sample intervals at a time. Chunks of 7 intervals (the last one padded)
+    and a block of samples weighted out: the factor holds the normal equations and the sum of
+    squares of the Jacobian and the residual it stands for."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdmd import simfit
+
+    monkeypatch.setattr(simfit, "_CHUNK", 7)
+    recordings = _regulator(n=2)
+    de, ae = _equations(recordings, (4.5, -4.6))
+    sim = _Simulator(de, ae, recordings, recordings, substeps=2, blowup=1e3)
+    theta = jnp.asarray(sim.theta0) * 1.1
+    weight = np.ones((2, recordings[0].n_samples))
+    weight[1, 100:250] = 0.0
+    r = np.asarray(sim.residual(theta, jnp.asarray(weight)))
+    J = np.asarray(jax.jacfwd(sim.residual)(theta, jnp.asarray(weight)))
+    f = np.asarray(sim.factor(weight)(theta))
+    p = theta.size
+    R, z, rho = f[:p, :p], f[:p, p], f[p, p]
+    np.testing.assert_allclose(R.T @ R, J.T @ J, rtol=1e-12, atol=1e-14 * np.abs(J.T @ J).max())
+    np.testing.assert_allclose(R.T @ z, J.T @ r, rtol=1e-12, atol=1e-14 * np.abs(J.T @ r).max())
+    assert z @ z + rho**2 == pytest.approx(r @ r, rel=1e-12)
+
+
+def test_the_fits_working_memory_does_not_depend_on_the_length():
+    """The compiled fold's temporary memory (XLA's own count) is the same for recordings of
+    501 and 5001 samples: a Jacobian of the rollouts would grow tenfold."""
+    import jax.numpy as jnp
+
+    temp = []
+    for samples in (501, 5001):
+        recordings = tracking(4, 0.01, GAIN, samples, (0.3, 0.07, 0.5, 0.1), seed=10)
+        de, ae = _equations(recordings, (4.5, -4.6))
+        sim = _Simulator(de, ae, recordings, recordings, substeps=1, blowup=1e3)
+        theta = jnp.asarray(sim.theta0)
+        sim.factor(np.ones((4, 1)))  # lays out the chunked inputs
+        h, y, *played = sim._chunked
+        program = sim._factor.lower(theta, jnp.ones((4, 1)), h, y, jnp.ones(y.shape), *played)
+        temp.append(program.compile().memory_analysis().temp_size_in_bytes)
+    assert temp[1] <= 1.05 * temp[0], temp
+
+
 def test_the_jax_simulation_of_time_blocks_is_the_host_simulation():
     from jaxdmd.select import time_blocks
 
