@@ -34,7 +34,11 @@ simulate is the model; the loop's choice, listed second, must be better by the t
 
 The simulation is the host simulation's scheme (:func:`jaxdmd.select.simulate_host`: Heun's
 method on the sample grid with ``substeps``, inputs linear between samples and held across an
-event), written in JAX so that its Jacobian is exact; one compiled fit serves every fold.
+event), written in JAX so that its sensitivities to the parameters are exact; one compiled
+program serves every fold. The fit never holds the rollouts' Jacobian: the sensitivities are
+carried forward with the states and folded, a chunk of sample intervals at a time, into a QR
+factor of the Jacobian beside the residual (:meth:`_Simulator.factor`), on which each
+Levenberg-Marquardt step is solved, so its memory does not grow with the recordings' length.
 """
 
 from __future__ import annotations
@@ -316,7 +320,8 @@ def _levenberg_marquardt(
     1 % of the predicted one, and multiplied by 4 after one that achieves less than 1 %,
     which is rejected). ``factor(theta)`` is :meth:`_Simulator.factor`: each damped step
     solves ``min |R d + z|^2 + lambda |d|^2`` on it. Stops when an accepted step changes every
-    parameter and the sum of squares by less than ``atol + rtol`` times their new size."""
+    parameter and the sum of squares by less than ``atol + rtol`` times their new size, or a
+    rejected one changes every parameter by less than that."""
     theta = np.asarray(theta0, dtype=float)
     p = theta.size
 
@@ -335,12 +340,14 @@ def _levenberg_marquardt(
         trial = theta + d
         R_new, z_new, new = split(factor(jnp.asarray(trial)))
         ratio = (cost - new) / predicted if predicted > 0 else -np.inf
+        small = np.all(np.abs(d) < atol + rtol * np.abs(trial))
         if ratio > 0.99:
             lam /= 3.5
         elif not ratio >= 0.01:
+            if small:  # nothing left to gain within the tolerance
+                break
             lam *= 4.0
             continue
-        small = np.all(np.abs(d) < atol + rtol * np.abs(trial))
         settled = abs(cost - new) < atol + rtol * abs(new)
         theta, R, z, cost = trial, R_new, z_new, new
         if small and settled:
