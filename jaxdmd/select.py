@@ -737,10 +737,7 @@ def _single_errors(
     union, members, wide, alone = _side_by_side(usable, lines, params, state, len(recordings))
     if members:
         source = ln.assemble("batch", [target, *state.contract.arguments], [union], ["y0"])
-        try:
-            program = interp.lower(source, n_outputs=1)
-        except (interp.LoweringError, ValueError):
-            program = None
+        program = _batch_program(source, 1)
         if program is None:
             alone = usable
         else:
@@ -759,11 +756,9 @@ def _single_errors(
         used = set().union(*(line.variables() for line in renamed))
         played = [a for a in state.contract.arguments if a in used and a != target]
         source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in group])
-        try:
-            if len(group) > 1 and _too_large(len(recordings), len(group), recordings[0].n_samples):
-                raise ValueError("a batch too large for memory")  # halved below
-            program = interp.lower(source, n_outputs=len(group))
-        except (interp.LoweringError, ValueError):
+        large = len(group) > 1 and _too_large(len(recordings), len(group), recordings[0].n_samples)
+        program = None if large else _batch_program(source, len(group))
+        if program is None:
             if len(group) > 1:
                 simulate(group[: len(group) // 2])
                 simulate(group[len(group) // 2 :])
@@ -798,6 +793,15 @@ _BATCH_VALUES = 2**23
 def _too_large(rows: int, states: int, samples: int) -> bool:
     """Whether a batch of rollouts of these dimensions is above :data:`_BATCH_VALUES`."""
     return rows * states * samples > _BATCH_VALUES
+
+
+def _batch_program(source: str, n_outputs: int) -> interp.Program | None:
+    """The program of a batch of lines side by side; None where it cannot be written (the
+    caller simulates the lines in smaller groups or alone)."""
+    try:
+        return interp.lower(source, n_outputs=n_outputs)
+    except (interp.LoweringError, ValueError):
+        return None
 
 
 def _batch_errors(
@@ -1144,11 +1148,9 @@ def _closed_errors(
         played = [a for a in arguments if a in used and a not in names]
         outputs = [f"y{k}" for k in range(len(names))]
         source = ln.assemble("closed", [*played, *names], closed, outputs)
-        try:
-            if len(group) > 1 and _too_large(len(recordings), len(names), recordings[0].n_samples):
-                raise ValueError("a batch too large for memory")  # halved below
-            program = interp.lower(source, n_outputs=len(names))
-        except (interp.LoweringError, ValueError):
+        large = len(group) > 1 and _too_large(len(recordings), len(names), recordings[0].n_samples)
+        program = None if large else _batch_program(source, len(names))
+        if program is None:
             if len(group) > 1:
                 simulate(group[: len(group) // 2])
                 simulate(group[len(group) // 2 :])
