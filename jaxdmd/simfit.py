@@ -121,7 +121,7 @@ class _Simulator:
         self.bound = jnp.asarray(blowup * (1.0 + np.max(np.abs(y), axis=2)))  # [B, S]
         self.substeps = substeps
         self._chunked: tuple[jax.Array, ...] | None = None  # factor's inputs, laid out once
-        self._factor: Callable[..., jax.Array] | None = None
+        self._folded = jax.jit(self._fold)  # one program for every fit's factor
         # one program for every scoring evaluation (op by op, each cost seconds of compiling)
         self._compiled = jax.jit(self.simulate)
 
@@ -202,22 +202,12 @@ class _Simulator:
             out.append(jax.vmap(one)(left, right, self.x0, self.bound))
         return out[0], out[1]
 
-    def residual(self, theta: jax.Array, weight: jax.Array) -> jax.Array:
-        """Scaled residuals whose sum of squares is the sum over recordings (weighted), states
-        and both simulations of the NRMSE squared. ``weight`` is ``[B]`` (per recording) or
-        ``[B, n]`` (per sample: a time block weighted out)."""
-        n = self.y.shape[2]
-        w = weight[:, None, None] if weight.ndim == 1 else weight[:, None, :]
-        parts = []
-        for sim in self.simulate(theta):
-            r = (sim - self.y) / self.scale[:, :, None] / np.sqrt(n)
-            parts.append((r * w).ravel())
-        return jnp.concatenate(parts)
-
     def factor(self, weight: np.ndarray) -> Callable[[jax.Array], jax.Array]:
         """The function ``theta -> `` upper-triangular factor ``[P + 1, P + 1]`` of
-        ``[J, r]``: the residual :meth:`residual` (``weight`` ``[B, n]``) beside its
-        Jacobian, without either.
+        ``[J, r]``, without either: the residual ``r`` of both simulations of every recording
+        (each sample's error scaled by its state's range and ``sqrt(n)``, times ``weight``
+        ``[B, n]`` or ``[B, 1]``: its sum of squares is the weighted sum of the NRMSEs
+        squared) beside its Jacobian ``J``.
 
         The two simulations run with their forward sensitivities (one tangent per parameter,
         carried step by step), ``_CHUNK`` sample intervals at a time; each chunk's rows of
@@ -225,6 +215,12 @@ class _Simulator:
         working memory does not depend on the recordings' length (the chunked inputs are
         laid out here, once per ``weight``). With ``[[R, z], [0, rho]]`` the factor,
         ``|J d + r|^2 = |R d + z|^2 + rho^2`` for every step ``d``."""
+        inputs = self._fold_inputs(weight)
+        return lambda theta: self._folded(theta, *inputs)
+
+    def _fold_inputs(self, weight: np.ndarray) -> tuple[jax.Array, ...]:
+        """:meth:`_fold`'s arguments after ``theta`` for ``weight``: the first sample's
+        weights, then the steps, states, weights and played-in channels chunked."""
         b, _, n = self.y.shape
         steps = n - 1
         chunks = -(-steps // _CHUNK)
@@ -245,13 +241,12 @@ class _Simulator:
         w = timed(weight[:, 1:, None] * norm[:, None, :])  # [chunks, _CHUNK, B, S]
         w0 = jnp.asarray(weight[:, 0, None] * norm)
         h, y, *played = self._chunked
-        if self._factor is None:
-            self._factor = jax.jit(self._fold)
-        return lambda theta: self._factor(theta, w0, h, y, w, *played)
+        return (w0, h, y, w, *played)
 
     def _fold(self, theta: jax.Array, w0: jax.Array, *inputs: jax.Array) -> jax.Array:
         """:meth:`factor`'s program: ``w0`` the first sample's weights ``[B, S]``, ``inputs``
-        the chunked steps, states, weights and played-in channels (closed, then open)."""
+        the chunked steps, states, weights and played-in channels (closed, then open):
+        :meth:`_fold_inputs`."""
         p = theta.size
         b, s, _ = self.y.shape
         runs = ((self.closed_names, True), (self.open_names, False))

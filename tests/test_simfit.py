@@ -69,6 +69,16 @@ def test_a_model_that_cannot_be_improved_is_kept():
     assert report["held_out"] == "recordings"
 
 
+def _residual(sim: _Simulator, theta, weight):
+    """The refit's residual from the full rollouts: each sample's error scaled by its
+    state's range and sqrt(n), times ``weight`` ``[B, n]``, both simulations."""
+    import jax.numpy as jnp
+
+    n = sim.y.shape[2]
+    scaled = [(x - sim.y) / sim.scale[:, :, None] / np.sqrt(n) for x in sim.simulate(theta)]
+    return jnp.concatenate([(r * weight[:, None, :]).ravel() for r in scaled])
+
+
 def test_the_fits_factor_is_that_of_the_residual_and_its_jacobian(monkeypatch):
     """The fit never forms the residual's Jacobian: it folds the sensitivities into a QR
     factor a chunk of sample intervals at a time. Chunks of 7 intervals (the last one padded)
@@ -86,8 +96,8 @@ def test_the_fits_factor_is_that_of_the_residual_and_its_jacobian(monkeypatch):
     theta = jnp.asarray(sim.theta0) * 1.1
     weight = np.ones((2, recordings[0].n_samples))
     weight[1, 100:250] = 0.0
-    r = np.asarray(sim.residual(theta, jnp.asarray(weight)))
-    J = np.asarray(jax.jacfwd(sim.residual)(theta, jnp.asarray(weight)))
+    r = np.asarray(_residual(sim, theta, jnp.asarray(weight)))
+    J = np.asarray(jax.jacfwd(_residual, argnums=1)(sim, theta, jnp.asarray(weight)))
     f = np.asarray(sim.factor(weight)(theta))
     p = theta.size
     R, z, rho = f[:p, :p], f[:p, p], f[p, p]
@@ -107,9 +117,7 @@ def test_the_fits_working_memory_does_not_depend_on_the_length():
         de, ae = _equations(recordings, (4.5, -4.6))
         sim = _Simulator(de, ae, recordings, recordings, substeps=1, blowup=1e3)
         theta = jnp.asarray(sim.theta0)
-        sim.factor(np.ones((4, 1)))  # lays out the chunked inputs
-        h, y, *played = sim._chunked
-        program = sim._factor.lower(theta, jnp.ones((4, 1)), h, y, jnp.ones(y.shape), *played)
+        program = sim._folded.lower(theta, *sim._fold_inputs(np.ones((4, 1))))
         temp.append(program.compile().memory_analysis().temp_size_in_bytes)
     assert temp[1] <= 1.05 * temp[0], temp
 
