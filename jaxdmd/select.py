@@ -58,7 +58,7 @@ import ast
 import dataclasses
 import functools
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -85,6 +85,7 @@ from jaxdmd.ties import settled
 
 __all__ = [
     "SelectionConfig",
+    "score_host",
     "select_algebraic",
     "select_by_simulation",
     "select_states_closed",
@@ -158,7 +159,24 @@ def _evaluate(program: interp.Program, args: list[np.ndarray], params: np.ndarra
     return interp.pointwise_numpy(program, args, params)
 
 
-def simulate_host(
+def _distinct(recordings: Sequence[Dataset]) -> tuple[list[Dataset], np.ndarray]:
+    """The distinct recordings among ``recordings`` (one given for several rows, as for
+    candidates side by side, is read once) and each row's index among them ``[B]``."""
+    where: dict[int, int] = {}  # id of a recording -> its index among the distinct ones
+    distinct: list[Dataset] = []
+    for ds in recordings:
+        if id(ds) not in where:
+            where[id(ds)] = len(distinct)
+            distinct.append(ds)
+    return distinct, np.asarray([where[id(ds)] for ds in recordings])
+
+
+def _channels(recordings: Sequence[Dataset], channels: Sequence[str]) -> np.ndarray:
+    """``[R, S, n]``: the ``channels`` of each recording."""
+    return np.stack([[np.asarray(ds[c], dtype=float) for c in channels] for ds in recordings])
+
+
+def _rollouts(
     program: interp.Program,
     targets: Sequence[str],
     params: np.ndarray,
@@ -169,58 +187,36 @@ def simulate_host(
     substeps: int = 1,
     blowup: float = 1e3,
     windows: Sequence[tuple[int, int]] | None = None,
-) -> np.ndarray:
-    """Integrate ``d targets/dt = program(arguments, p)`` from each recording's first sample,
-    every argument that is not a target played in from the recording. ``channels`` names the
-    recorded channel of each target (default: the target's own name; several targets may be
-    candidates for the same state, simulated side by side). ``algebraic`` closes the model: a
-    program, its targets and its parameters ``[B, P]``, evaluated before the state equations at
-    every stage on the simulated states and the played-in channels; its targets are then not
-    played in (a DAE rollout).
-
-    ``params`` is ``[B, P]``, one row per recording (``B == len(recordings)``; the recordings
-    must share their time grid and events; one recording may be given for several rows, as
-    for candidates simulated side by side, and is then interpolated once). ``windows`` (one
-    ``(start, stop)`` sample range per row) starts row ``b``'s rollout at sample ``start`` from
-    the recording's states there (a held-out time block, :func:`time_blocks`): before it the
-    row holds the recorded states; only the samples in the window are meant to be scored
-    (:func:`simulation_error`). Returns the simulated targets ``[B, S, n]`` (NaN from the first
-    sample a rollout diverged at).
-    """
+) -> Iterator[np.ndarray]:
+    """The rollouts of :func:`simulate_host` a sample at a time: the simulated targets
+    ``[B, S]`` at each sample of the time grid, in order (NaN from the first sample a rollout
+    diverged at; all NaN after every one has). Holds no array as long as the rollouts."""
     targets = tuple(targets)
     first = recordings[0]
     ae_targets: tuple[str, ...] = () if algebraic is None else tuple(algebraic[1])
     needed = [*program.arguments, *(algebraic[0].arguments if algebraic else ())]
     played_names = sorted({a for a in needed if a not in targets and a not in ae_targets})
-    # a recording given for several rows (candidates side by side) is read and interpolated
-    # once; each row reads its recording's values
-    where: dict[int, int] = {}  # id of a recording -> its index among the distinct ones
-    distinct: list[Dataset] = []
-    for ds in recordings:
-        if id(ds) not in where:
-            where[id(ds)] = len(distinct)
-            distinct.append(ds)
     t = np.asarray(first.t, dtype=float)
-    for ds in distinct[1:]:
+    for ds in recordings[1:]:
         if ds.n_samples != first.n_samples or not np.array_equal(np.asarray(ds.t), t):
             raise ValueError("simulate_host: the recordings must share their time grid")
-    played = [_played(ds, played_names) for ds in distinct]
-    rows = np.asarray([where[id(ds)] for ds in recordings])
-    gather = None if len(distinct) == len(recordings) else rows
     channels = targets if channels is None else tuple(channels)
-    measured = np.stack([[np.asarray(ds[c], dtype=float) for c in channels] for ds in recordings])
-    bound = blowup * (1.0 + np.max(np.abs(measured), axis=2))  # [B, S]
+    # a recording given for several rows is read and interpolated once; each row reads its
+    # recording's values
+    distinct, rows = _distinct(recordings)
+    measured = _channels(distinct, channels)  # [R, S, n]
+    played = [_played(ds, played_names) for ds in distinct]
+    gather = None if len(distinct) == len(recordings) else rows
+    bound = blowup * (1.0 + np.max(np.abs(measured), axis=2))[rows]  # [B, S]
     index = {s: i for i, s in enumerate(targets)}
-    b, s, n = measured.shape
-    out = np.full((b, s, n), np.nan)
-    x = measured[:, :, 0].copy()
-    out[:, :, 0] = x
+    n = measured.shape[2]
+    x = measured[rows, :, 0]
+    yield x
     params = np.asarray(params, dtype=float)
     starts = None if windows is None else np.asarray([w[0] for w in windows])
 
     # the played-in values at each substep's ends, for every interval at once: [n - 1, R] per
-    # name and weight, R the distinct recordings (the same arithmetic as one interval at a
-    # time, without it at every stage)
+    # name and weight (the same arithmetic as one interval at a time, without it at every stage)
     weights = [m / substeps for m in range(substeps + 1)]
     at: list[dict[str, np.ndarray]] = [{} for _ in weights]
     for a in played_names:
@@ -248,13 +244,110 @@ def simulate_host(
                 x = x + 0.5 * h * (k1 + k2)
             if starts is not None:  # a row whose block starts later holds the recording
                 hold = k + 1 <= starts
-                x[hold] = measured[hold, :, k + 1]
+                x[hold] = measured[rows[hold], :, k + 1]
             bad = ~(np.isfinite(x) & (np.abs(x) <= bound))  # each state on its own
             x[bad] = np.nan
-            out[:, :, k + 1] = x
+            yield x
             if bad.all():
-                break
+                for _ in range(k + 2, n):
+                    yield x
+                return
+
+
+def simulate_host(
+    program: interp.Program,
+    targets: Sequence[str],
+    params: np.ndarray,
+    recordings: Sequence[Dataset],
+    *,
+    channels: Sequence[str] | None = None,
+    algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
+    substeps: int = 1,
+    blowup: float = 1e3,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:
+    """Integrate ``d targets/dt = program(arguments, p)`` from each recording's first sample,
+    every argument that is not a target played in from the recording. ``channels`` names the
+    recorded channel of each target (default: the target's own name; several targets may be
+    candidates for the same state, simulated side by side). ``algebraic`` closes the model: a
+    program, its targets and its parameters ``[B, P]``, evaluated before the state equations at
+    every stage on the simulated states and the played-in channels; its targets are then not
+    played in (a DAE rollout).
+
+    ``params`` is ``[B, P]``, one row per recording (``B == len(recordings)``; the recordings
+    must share their time grid and events; one recording may be given for several rows, as
+    for candidates simulated side by side, and is then interpolated once). ``windows`` (one
+    ``(start, stop)`` sample range per row) starts row ``b``'s rollout at sample ``start`` from
+    the recording's states there (a held-out time block, :func:`time_blocks`): before it the
+    row holds the recorded states; only the samples in the window are meant to be scored
+    (:func:`simulation_error`). Returns the simulated targets ``[B, S, n]`` (NaN from the first
+    sample a rollout diverged at). Where only the error is wanted, :func:`score_host` gives it
+    without holding the rollouts.
+    """
+    steps = _rollouts(
+        program, targets, params, recordings, channels=channels, algebraic=algebraic,
+        substeps=substeps, blowup=blowup, windows=windows,
+    )  # fmt: skip
+    x = next(steps)
+    out = np.full((*x.shape, recordings[0].n_samples), np.nan)
+    out[:, :, 0] = x
+    for k, x in enumerate(steps, start=1):
+        out[:, :, k] = x
     return out
+
+
+#: the most squared errors :func:`score_host` holds at once (16 MB): the rollouts' errors are
+#: summed along time this many values at a time, at most the whole recording's (then the sum
+#: is NumPy's over the stored errors, the same to the bit as :func:`simulation_error`'s).
+_SCORE_VALUES = 2**21
+
+
+def score_host(
+    program: interp.Program,
+    targets: Sequence[str],
+    params: np.ndarray,
+    recordings: Sequence[Dataset],
+    *,
+    channels: Sequence[str] | None = None,
+    against: Sequence[Dataset] | None = None,
+    algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
+    substeps: int = 1,
+    blowup: float = 1e3,
+    windows: Sequence[tuple[int, int]] | None = None,
+) -> np.ndarray:
+    """The NRMSE ``[B, S]`` of :func:`simulate_host`'s rollouts (the same arguments) against
+    the recorded ``channels`` of ``against`` (one recording per row; default: ``recordings``,
+    those played in), as :func:`simulation_error` scores them, without holding the rollouts:
+    each row's squared errors are summed along time a chunk of samples at a time
+    (:data:`_SCORE_VALUES`), so the memory does not grow with the length or the number of rows
+    simulated side by side. inf where a rollout diverged."""
+    channels = tuple(targets) if channels is None else tuple(channels)
+    distinct, rows = _distinct(recordings if against is None else against)
+    measured = _channels(distinct, channels)  # [R, S, n]
+    b, s, n = len(rows), len(channels), measured.shape[2]
+    if windows is None:
+        lo, hi = np.zeros(b, dtype=int), np.full(b, n)
+    else:
+        lo, hi = (np.asarray([w[i] for w in windows]) for i in (0, 1))
+    width = n if b * s * n <= _SCORE_VALUES else max(1, _SCORE_VALUES // (b * s))
+    chunk = np.empty((b, s, width))
+    total = np.zeros((b, s))
+    steps = _rollouts(
+        program, targets, params, recordings, channels=channels, algebraic=algebraic,
+        substeps=substeps, blowup=blowup, windows=windows,
+    )  # fmt: skip
+    j = 0
+    with np.errstate(all="ignore"):
+        for k, x in enumerate(steps):
+            inside = ((k >= lo) & (k < hi))[:, None]
+            chunk[:, :, j] = np.where(inside, (x - measured[rows, :, k]) ** 2, 0.0)
+            j += 1
+            if j == width or k == n - 1:
+                total += chunk[:, :, :j].sum(axis=-1)
+                j = 0
+        count = (np.minimum(hi, n) - np.maximum(lo, 0))[:, None]  # each row's window
+        err = np.sqrt(total / count) / _range(measured, axis=-1)[rows]
+    return np.where(np.isfinite(err), err, np.inf)
 
 
 def _shared_grid(recordings: Sequence[Dataset]) -> bool:
@@ -741,9 +834,7 @@ def _single_errors(
         if program is None:
             alone = usable
         else:
-            measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])
-            err = _batch_errors(program, (target,), wide, recordings, measured[:, None], config,
-                                windows)  # fmt: skip
+            err = _batch_errors(program, (target,), wide, recordings, recordings, config, windows)
             for i, e in zip(members, err, strict=True):
                 errors[i] = float(e)
 
@@ -756,8 +847,7 @@ def _single_errors(
         used = set().union(*(line.variables() for line in renamed))
         played = [a for a in state.contract.arguments if a in used and a != target]
         source = ln.assemble("batch", [*played, *copies], renamed, [f"y{i}" for _, i in group])
-        large = len(group) > 1 and _too_large(len(recordings), len(group), recordings[0].n_samples)
-        program = None if large else _batch_program(source, len(group))
+        program = _batch_program(source, len(group))
         if program is None:
             if len(group) > 1:
                 simulate(group[: len(group) // 2])
@@ -768,31 +858,16 @@ def _single_errors(
             axis=1,
         )  # [folds, sum of the lines' parameters], in the assembled order
         rows = _per_recording(rows, state, len(recordings))
-        sim = simulate_host(
+        err = score_host(
             program, copies, rows, recordings, channels=[target] * len(copies),
             substeps=config.substeps, blowup=config.blowup, windows=windows,
-        )  # fmt: skip
-        measured = np.stack([np.asarray(ds[target], dtype=float) for ds in recordings])[:, None]
-        err = _nrmse(sim, np.broadcast_to(measured, sim.shape), windows)  # [B, lines]
+        )  # [B, lines]  # fmt: skip
         for (_, i), e in zip(group, err.mean(axis=0), strict=True):
             errors[i] = float(e)
 
     if alone:
         simulate(alone)
     return errors
-
-
-#: the most values a batch of rollouts side by side holds in one ``[rows, states, samples]``
-#: array (64 MB): longer recordings are simulated a few candidates at a time. Every row's
-#: arithmetic is its own (the programs are pointwise, the errors reduce along time), so the
-#: errors are the same to the bit however the candidates are split; the benchmark's recordings
-#: (4 x 1001 samples) never reach it.
-_BATCH_VALUES = 2**23
-
-
-def _too_large(rows: int, states: int, samples: int) -> bool:
-    """Whether a batch of rollouts of these dimensions is above :data:`_BATCH_VALUES`."""
-    return rows * states * samples > _BATCH_VALUES
 
 
 def _batch_program(source: str, n_outputs: int) -> interp.Program | None:
@@ -806,38 +881,21 @@ def _batch_program(source: str, n_outputs: int) -> interp.Program | None:
 
 def _batch_errors(
     program: interp.Program, states: Sequence[str], rows: np.ndarray,
-    recordings: Sequence[Dataset], measured: np.ndarray, config: SelectionConfig,
+    recordings: Sequence[Dataset], against: Sequence[Dataset], config: SelectionConfig,
     windows: Sequence[tuple[int, int]] | None = None,
     algebraic: tuple[interp.Program, Sequence[str], np.ndarray] | None = None,
 ) -> np.ndarray:  # fmt: skip
     """The mean NRMSE of each of ``k`` candidates run side by side: parameter rows
     ``[k * B, P]`` (candidate after candidate, one row per recording) simulated on the ``B``
-    ``recordings`` (and ``windows``, one per recording) and scored against ``measured``
-    ``[B, S, n]``; ``algebraic``'s parameters, if one row per row of ``rows``, go with them.
-    A few candidates at a time where the batch would be large (:data:`_BATCH_VALUES`).
-    Returns ``[k]``."""
-    b = len(recordings)
-    k = rows.shape[0] // b
-    if k > 1 and _too_large(rows.shape[0], measured.shape[1], measured.shape[2]):
-        per = max(1, _BATCH_VALUES // (b * measured.shape[1] * measured.shape[2]))
-        parts = []
-        for lo in range(0, k, per):
-            part = slice(lo * b, min(k, lo + per) * b)
-            closed = algebraic
-            if algebraic is not None and algebraic[2].shape[0] == rows.shape[0]:
-                closed = (algebraic[0], algebraic[1], algebraic[2][part])
-            parts.append(
-                _batch_errors(
-                    program, states, rows[part], recordings, measured, config, windows, closed
-                )
-            )
-        return np.concatenate(parts)
-    held = None if windows is None else list(windows) * k
-    sim = simulate_host(
-        program, states, rows, list(recordings) * k, algebraic=algebraic,
-        substeps=config.substeps, blowup=config.blowup, windows=held,
-    )  # fmt: skip
-    err = _nrmse(sim, np.tile(measured, (k, 1, 1)), held)  # [k * B, S]
+    ``recordings`` (and ``windows``, one per recording) and scored against the states of
+    ``against`` (one per recording); ``algebraic``'s parameters, if one row per row of ``rows``,
+    go with them. Returns ``[k]``."""
+    k = rows.shape[0] // len(recordings)
+    err = score_host(
+        program, states, rows, list(recordings) * k, against=list(against) * k,
+        algebraic=algebraic, substeps=config.substeps, blowup=config.blowup,
+        windows=None if windows is None else list(windows) * k,
+    )  # [k * B, S]  # fmt: skip
     return err.reshape(k, -1).mean(axis=1)
 
 
@@ -879,10 +937,10 @@ def _coupled_error(
     targets = tuple(equations.contract.targets)
     p = np.asarray(equations.params, dtype=float)[None, : max(1, skeleton.n_params)]
     rows = np.repeat(p, len(recordings), axis=0)
-    sim = simulate_host(
+    err = score_host(
         program, targets, rows, recordings, substeps=config.substeps, blowup=config.blowup
     )
-    return float(np.mean(simulation_error(sim, recordings, targets)))
+    return float(np.mean(err))
 
 
 def _skeleton(state: SearchState, chosen: Sequence[ln.Line]) -> Skeleton | None:
@@ -1017,13 +1075,12 @@ def dae_errors(
     q = np.asarray(ae_params, dtype=float)
     if q.ndim == 1:
         q = np.repeat(q[None, : max(1, ae_program.n_params)], b, axis=0)
-    sim = simulate_host(
+    return score_host(
         program, targets, np.repeat(p, b, axis=0),
         list(recordings) if played_from is None else list(played_from),
-        algebraic=(ae_program, tuple(ae_targets), q),
+        against=recordings, algebraic=(ae_program, tuple(ae_targets), q),
         substeps=config.substeps, blowup=config.blowup, windows=windows,
     )  # fmt: skip
-    return simulation_error(sim, recordings, targets, windows)
 
 
 def simulation_nrmse(
@@ -1103,7 +1160,6 @@ def _closed_errors(
     if not driven:
         return errors
     states = tuple(s for s, _ in driven)
-    measured = np.stack([[np.asarray(ds[s], dtype=float) for s in states] for ds in recordings])
     source_of_play = list(recordings) if played_from is None else list(played_from)
     arguments = [*dict.fromkeys([*de.contract.arguments, *ae_state.contract.arguments])]
     b = len(recordings)
@@ -1125,7 +1181,7 @@ def _closed_errors(
             alone = usable
         else:
             err = _batch_errors(
-                program, states, np.zeros((len(members) * b, 1)), source_of_play, measured,
+                program, states, np.zeros((len(members) * b, 1)), source_of_play, recordings,
                 config, windows, algebraic=(ae_program, (target,), wide),
             )  # fmt: skip
             for i, e in zip(members, err, strict=True):
@@ -1148,20 +1204,17 @@ def _closed_errors(
         played = [a for a in arguments if a in used and a not in names]
         outputs = [f"y{k}" for k in range(len(names))]
         source = ln.assemble("closed", [*played, *names], closed, outputs)
-        large = len(group) > 1 and _too_large(len(recordings), len(names), recordings[0].n_samples)
-        program = None if large else _batch_program(source, len(names))
+        program = _batch_program(source, len(names))
         if program is None:
             if len(group) > 1:
                 simulate(group[: len(group) // 2])
                 simulate(group[len(group) // 2 :])
             return
         rows = _per_recording(np.concatenate(blocks, axis=1), ae_state, len(recordings))
-        sim = simulate_host(
+        err = score_host(
             program, names, rows, source_of_play, channels=[*states] * len(group),
-            substeps=config.substeps, blowup=config.blowup, windows=windows,
-        )  # fmt: skip
-        sim = sim.reshape(len(recordings), len(group), len(states), -1)
-        err = _nrmse(sim, np.broadcast_to(measured[:, None], sim.shape), windows)
+            against=recordings, substeps=config.substeps, blowup=config.blowup, windows=windows,
+        ).reshape(len(recordings), len(group), len(states))  # fmt: skip
         for (_, i), e in zip(group, err.mean(axis=(0, 2)), strict=True):
             errors[i] = float(e)
 
@@ -1805,7 +1858,6 @@ def _states_closed_errors(
         groups.append((union, members, wide))
     ae_program, ae_targets, ae_rows = closure
     source_of_play = list(recordings) if played_from is None else list(played_from)
-    measured = np.stack([[np.asarray(ds[s], dtype=float) for s in targets] for ds in recordings])
     for line, indices, rows in groups:
         equations = [*fixed[:j], line, *fixed[j:]]
         used = set().union(*(e.variables() for e in equations))
@@ -1821,7 +1873,7 @@ def _states_closed_errors(
             continue
         closed = (ae_program, ae_targets, np.tile(ae_rows, (len(indices), 1)))
         err = _batch_errors(
-            program, targets, rows, source_of_play, measured, config, windows, algebraic=closed
+            program, targets, rows, source_of_play, recordings, config, windows, algebraic=closed
         )
         for i, e in zip(indices, err, strict=True):
             errors[i] = float(e)

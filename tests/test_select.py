@@ -63,6 +63,47 @@ def test_a_recording_given_for_several_rows_simulates_as_copies_of_it():
     assert not np.array_equal(shared[0], shared[2])  # each row its own parameters
 
 
+def test_the_score_is_the_stored_rollouts_error_without_storing_them(monkeypatch):
+    """score_host gives simulation_error of simulate_host's rollouts to the bit (rows that share
+    a recording, time blocks, a row that diverges, other recordings scored against), and its
+    memory does not grow with the rows simulated side by side."""
+    import tracemalloc
+
+    from jaxdmd import select
+    from jaxdmd.select import score_host, simulation_error
+
+    recordings = _drift(n=2)
+    sk = compile_skeleton(
+        "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n", variables=("x", "u"),
+        n_outputs=1,
+    )  # fmt: skip
+    program = interp.program_of(sk)
+    p = np.array([[0.5, -0.05], [0.4, -0.1], [0.3, -0.2], [0.6, 30.0]])  # the last diverges
+    rows, against = [*recordings, *recordings], [*recordings[::-1], *recordings]
+    for windows in (None, [(0, 300), (300, 700), (700, 1001), (100, 200)]):
+        sim = simulate_host(program, ("x",), p, rows, windows=windows)
+        ref = simulation_error(sim, against, ("x",), windows)
+        got = score_host(program, ("x",), p, rows, against=against, windows=windows)
+        assert np.all(np.isfinite(ref[:3])) and np.isinf(ref[3, 0])
+        assert np.array_equal(got, ref)
+
+    t = np.linspace(0.0, 400.0, 20001)
+    u = np.sin(0.3 * t)
+    long = Dataset.create(t, {"x": 1.0 + u, "u": u}, {"x": "state", "u": "input"})
+    monkeypatch.setattr(select, "_SCORE_VALUES", 2**14)
+
+    def peak(k: int) -> int:
+        tracemalloc.start()
+        score_host(program, ("x",), np.tile(p[:1], (k, 1)), [long] * k)
+        _, top = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return top
+
+    few, many = peak(8), peak(64)
+    trajectory = 64 * t.size * 8  # bytes of the 64 rows' rollouts
+    assert many < 1.1 * few and many < trajectory / 4, (few, many, trajectory)
+
+
 def test_host_simulation_agrees_with_the_rollout():
     recordings = _drift(n=2)
     source = "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n"
@@ -898,10 +939,11 @@ def test_candidates_side_by_side_score_as_each_alone():
     assert together[0] < together[1] and together[0] < together[2]
 
 
-def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_errors(monkeypatch):
-    """A batch of rollouts too large for memory is split, a few candidates at a time (the
-    side-by-side rows, the closed programs' outputs): each candidate's error is the same to the
-    bit as in one batch."""
+def test_long_recordings_sum_their_errors_a_chunk_at_a_time(monkeypatch):
+    """Where a batch's squared errors would not fit in memory they are summed along time a
+    chunk of samples at a time (the side-by-side rows, the closed variable, the closed model):
+    each candidate's error is the same to round-off as summed at once; and the errors are those
+    :func:`select.score_host` tests the errors against the stored rollouts'."""
     from jaxdmd import select
     from jaxdmd.select import (
         SelectionConfig,
@@ -937,20 +979,10 @@ def test_long_recordings_simulate_a_few_candidates_at_a_time_with_the_same_error
             ),
         ]  # fmt: skip
 
-    rollouts = []  # the rows of each batch of rollouts
-    original = select.simulate_host
-
-    def counted(*args, **kwargs):
-        rollouts.append(np.shape(args[2])[0])
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(select, "simulate_host", counted)
     whole = errors()
-    in_one = list(rollouts)
-    rollouts.clear()
-    monkeypatch.setattr(select, "_BATCH_VALUES", 1)  # every batch above it: one at a time
-    split = errors()
-    assert len(rollouts) > len(in_one) and max(rollouts) < max(in_one)
-    for a, b in zip(whole, split, strict=True):
+    monkeypatch.setattr(select, "_SCORE_VALUES", 5)  # a sample or two at a time
+    chunked = errors()
+    for a, b in zip(whole, chunked, strict=True):
         assert np.isfinite(a).sum() >= 4  # (w's own line cannot close w)
-        np.testing.assert_array_equal(a, b)
+        assert not np.array_equal(a[np.isfinite(a)], b[np.isfinite(b)])  # summed otherwise
+        np.testing.assert_allclose(a, b, rtol=1e-12)
