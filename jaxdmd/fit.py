@@ -976,6 +976,9 @@ def fit_batch(
             p0[j, :, : m.n_params] = _initial_params(m, key_data, config)
         finish(indices, fn({a: data[a] for a in used}, tgt, scale, _on_device(p0)))
 
+    # each lowered candidate's feature rows [F, N], kept while the candidate is being fitted
+    # (the linear shortcut, its affine groups and Levenberg-Marquardt read them) and dropped when
+    # it is done: at long recordings the rows of a whole batch would not fit in memory
     features: dict[int, np.ndarray] = {}
 
     def feature_values(i: int) -> np.ndarray:
@@ -1028,6 +1031,7 @@ def fit_batch(
                 solved,
             )  # fmt: skip
             finish([i], (p[None], loss[None], dep[None], steps))
+            features.pop(i, None)
 
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
         if i in programs:
@@ -1053,6 +1057,7 @@ def fit_batch(
                 n_real = int(skeletons[i].n_params)
                 results[i] = dataclasses.replace(fitted, params=fitted.params[:n_real])
                 del models[i]
+                features.pop(i, None)
     lowered = [i for i in models if i in programs]
     if config.linear_shortcut:
         for i in lowered:

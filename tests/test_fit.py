@@ -258,3 +258,37 @@ def test_chunked_evaluation_is_bit_identical(monkeypatch) -> None:
     band = lm.band_matrix(index, weight)
     one = np.ascontiguousarray((band @ big.reshape(-1, N).T).T).reshape(big.shape)
     assert lm.apply_band(band, big).tobytes() == one.tobytes()
+
+
+def test_a_batch_holds_the_feature_rows_of_the_candidates_being_fitted_only() -> None:
+    """At long recordings a batch's feature rows (each candidate's parameter-free terms) do not
+    fit in memory together: a candidate's rows are dropped when it is fitted, so the memory of
+    a batch does not grow with its candidates (the fits are the same)."""
+    import tracemalloc
+
+    rng = np.random.default_rng(0)
+    n = 20000
+    names = [f"x{i}" for i in range(8)]
+    data = {v: rng.normal(size=n) for v in names}
+    pairs = [(a, b) for a in names for b in names if a < b]
+    sources = [
+        f"def f({', '.join(names)}, p):\n"
+        f"    return p[0] * {a} * {b} + p[1] * {a} * {a} * {b} + p[2] * {b} * {b}"
+        f" + p[3] * {a} * {b} * {b}\n"
+        for a, b in pairs
+    ]
+    skeletons = [compile_skeleton(s, variables=tuple(names), n_outputs=1) for s in sources]
+    target = data["x0"] * data["x1"] + 0.1 * rng.normal(size=n)
+
+    def peak(k: int) -> tuple[int, list[FitResult]]:
+        tracemalloc.start()
+        results = fit_batch(skeletons[:k], data, target, key=jax.random.key(0))
+        _, top = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return top, results
+
+    few, first = peak(3)
+    many, results = peak(len(skeletons))
+    rows = len(skeletons) * 4 * n * 8  # bytes of all the candidates' feature rows
+    assert many < 1.5 * few and many < rows / 2, (few, many, rows)
+    assert [r.params.tolist() for r in results[:3]] == [r.params.tolist() for r in first]
