@@ -46,15 +46,20 @@ def _drift(n: int = 3, noise: float = 0.02, seed: int = 0) -> list[Dataset]:
     return out
 
 
-def test_a_recording_given_for_several_rows_simulates_as_copies_of_it():
-    """Rows that share a recording (candidates side by side) read it once: the rollouts are
-    those of distinct copies, to the bit."""
-    recordings = _drift(n=2)
+def _drift_program() -> interp.Program:
+    """The program of the drift's true equation, d x/dt = p0 u + p1 (x - 1)."""
     sk = compile_skeleton(
         "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n", variables=("x", "u"),
         n_outputs=1,
     )  # fmt: skip
-    program = interp.program_of(sk)
+    return interp.program_of(sk)
+
+
+def test_a_recording_given_for_several_rows_simulates_as_copies_of_it():
+    """Rows that share a recording (candidates side by side) read it once: the rollouts are
+    those of distinct copies, to the bit."""
+    recordings = _drift(n=2)
+    program = _drift_program()
     p = np.array([[0.5, -0.05], [0.4, -0.1], [0.3, -0.2], [0.6, -0.3]])
     shared = simulate_host(program, ("x",), p, [*recordings, *recordings])
     copies = [eqx.tree_at(lambda d: d.t, ds, np.array(ds.t)) for ds in recordings]
@@ -73,11 +78,7 @@ def test_the_score_is_the_stored_rollouts_error_without_storing_them(monkeypatch
     from jaxdmd.select import score_host, simulation_error
 
     recordings = _drift(n=2)
-    sk = compile_skeleton(
-        "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n", variables=("x", "u"),
-        n_outputs=1,
-    )  # fmt: skip
-    program = interp.program_of(sk)
+    program = _drift_program()
     p = np.array([[0.5, -0.05], [0.4, -0.1], [0.3, -0.2], [0.6, 30.0]])  # the last diverges
     rows, against = [*recordings, *recordings], [*recordings[::-1], *recordings]
     for windows in (None, [(0, 300), (300, 700), (700, 1001), (100, 200)]):
@@ -506,11 +507,7 @@ def test_one_recording_is_cut_into_time_blocks_each_simulated_from_its_first_sam
     assert len(held.recordings) == 4
     # block b's rollout starts from the recorded state at its first sample: the same as a
     # rollout of the recording cut there
-    sk = compile_skeleton(
-        "def f(x, u, p):\n    return p[0] * u + p[1] * (x - 1.0)\n", variables=("x", "u"),
-        n_outputs=1,
-    )  # fmt: skip
-    program = interp.program_of(sk)
+    program = _drift_program()
     p = np.array([[0.5, -0.05]] * 4)
     sim = simulate_host(program, ("x",), p, [ds] * 4, windows=blocks)
     for b, (start, stop) in enumerate(blocks):
