@@ -339,8 +339,10 @@ def score_host(
     j = 0
     with np.errstate(all="ignore"):
         for k, x in enumerate(steps):
-            inside = ((k >= lo) & (k < hi))[:, None]
-            chunk[:, :, j] = np.where(inside, (x - measured[rows, :, k]) ** 2, 0.0)
+            squared = (x - measured[rows, :, k]) ** 2
+            if windows is not None:  # a sample outside its row's window does not count
+                squared = np.where(((k >= lo) & (k < hi))[:, None], squared, 0.0)
+            chunk[:, :, j] = squared
             j += 1
             if j == width or k == n - 1:
                 total += chunk[:, :, :j].sum(axis=-1)
