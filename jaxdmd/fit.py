@@ -235,13 +235,28 @@ class Operator:
     ``(S y)_i = sum_k weight[i, k] * y[index[i, k]]`` (a band matrix; see
     :func:`jaxdmd.data.matched_filter`, which makes the operator matched to a derivative
     estimator). Compared by identity, so it can sit in the compiled fit's cache key.
+
+    The indices are 32-bit where the samples allow (below 2**31 of them): the band of a long
+    recording is the largest array a fit holds besides the data, and :attr:`band` shares its
+    buffers.
     """
 
     def __init__(self, index: Any, weight: Any):
-        self.index = _on_device(index, np.int64)
+        index = np.asarray(index)
+        small = index.size == 0 or (index.min() >= 0 and index.max() < np.iinfo(np.int32).max)
+        self.index = _on_device(index, np.int32 if small else np.int64)
         self.weight = _on_device(weight, np.float64)
         if self.index.shape != self.weight.shape or self.index.ndim != 2:
             raise ValueError("operator index and weight must both be [N, w]")
+        self._band: Any = None
+
+    @property
+    def band(self) -> Any:
+        """The operator as a SciPy CSR matrix (:func:`jaxdmd.lm.band_matrix`), built once and on
+        the operator's own buffers (no copy of the indices or weights)."""
+        if self._band is None:
+            self._band = lm.band_matrix(self.index, self.weight)
+        return self._band
 
     def __call__(self, y: Array) -> Array:
         return jnp.sum(y[..., self.index] * self.weight, axis=-1)
@@ -1048,7 +1063,7 @@ def fit_batch(
         )
 
     key_data = np.asarray(jax.random.key_data(key))
-    band = None if operator is None else lm.band_matrix(operator.index, operator.weight)
+    band = None if operator is None else operator.band
     if config.linear_shortcut:
         for i in list(models):
             m = models[i]

@@ -292,3 +292,21 @@ def test_a_batch_holds_the_feature_rows_of_the_candidates_being_fitted_only() ->
     rows = len(skeletons) * 4 * n * 8  # bytes of all the candidates' feature rows
     assert many < 1.5 * few and many < rows / 2, (few, many, rows)
     assert [r.params.tolist() for r in results[:3]] == [r.params.tolist() for r in first]
+
+
+def test_the_operator_shares_its_buffers_with_its_band_matrix() -> None:
+    """At long recordings the matched operator is the largest array a fit holds besides the
+    data: its indices are 32-bit, and the sparse matrix the host fit multiplies by is built
+    once, on the operator's own buffers."""
+    from jaxdmd.fit import Operator
+
+    n, width = 1000, 7
+    index = np.clip(np.arange(n)[:, None] + np.arange(width)[None, :] - width // 2, 0, n - 1)
+    weight = np.random.default_rng(0).normal(size=(n, width))
+    operator = Operator(index, weight)
+    band = operator.band
+    assert operator.band is band and operator.index.dtype == np.int32
+    assert np.shares_memory(band.indices, np.asarray(operator.index))
+    assert np.shares_memory(band.data, np.asarray(operator.weight))
+    y = np.random.default_rng(1).normal(size=n)
+    np.testing.assert_allclose(band @ y, np.asarray(operator(y)), rtol=1e-12, atol=1e-12)
