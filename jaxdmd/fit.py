@@ -151,7 +151,9 @@ class FitConfig:
             restart of the candidate as a whole).
         linear_shortcut: solve candidates that are affine in ``p`` exactly by weighted linear
             least squares, evaluated eagerly (no XLA compile of the candidate); see
-            :func:`_linear_fit`. Only the other candidates go through the compiled LM.
+            :func:`_linear_fit`. A lowered candidate is solved a group of outputs (linked by
+            shared parameters) at a time, and only its groups that are not affine go through
+            Levenberg-Marquardt.
         compiler_options: XLA options for the fused compile, as ``(name, value)`` pairs. The
             default turns XLA:CPU's new fusion emitters off, which roughly halves the compile
             time of these many small fusions at equal run time (measured, docs/fit.md).
@@ -730,19 +732,29 @@ def _affine_groups(
     config: FitConfig,
 ) -> list[tuple[list[int], list[int], np.ndarray, np.ndarray]]:
     """The groups of outputs (linked by shared parameters) that are affine in their parameters,
-    each solved exactly by :func:`_linear_fit`: ``(outputs, parameters, values, losses)``.
+    each solved exactly by :func:`_linear_fit`: ``(outputs, parameters, values, losses)``. An
+    output that reads no parameter is a group of its own, with its loss and no parameters.
 
     The outputs of a candidate that share no parameter are separate least-squares problems, so
-    the linear shortcut applies to each group on its own; only the other groups are left to the
+    the linear shortcut applies to each group on its own, and only one group's predictions are
+    held at a time (``[P_g + 3, K_g, N]``, not the candidate's ``[P + 3, K, N]``: at long
+    recordings the largest array of a fit). Only the other groups are left to the
     Levenberg-Marquardt loop (their slots in the interpreter are empty).
     """
     dep = lm.dependence(program.parts, max(1, program.n_params))
     found = []
     for outs in lm.output_groups(dep):
-        if not dep[outs].any():
-            continue
         group = lm.OutputGroup(program.parts, outs, rows, targets, scale, band)
         n_p = len(group.cols)
+        if n_p == 0:
+            try:
+                residual = scale[outs] * (group.predict(np.zeros((1, 0)))[0] - targets[outs])
+            except Exception:  # leave it to the general path, which reports the reason
+                continue
+            losses = np.sum(residual**2, axis=1)
+            if np.all(np.isfinite(losses)):
+                found.append((outs, [], np.zeros(0), losses))
+            continue
 
         def predict(probes: np.ndarray, out: np.ndarray, group: lm.OutputGroup = group) -> None:
             out[...] = group.predict(probes)
@@ -752,6 +764,23 @@ def _affine_groups(
         if fitted is not None:
             found.append((outs, group.cols, fitted.params, fitted.losses))
     return found
+
+
+def _exact_fit(
+    groups: list[tuple[list[int], list[int], np.ndarray, np.ndarray]],
+    n_params: int,
+    n_outputs: int,
+    config: FitConfig,
+) -> FitResult | None:
+    """The fit of a candidate whose every output is in one of :func:`_affine_groups`' solved
+    ``groups``; None if some output is not."""
+    if sorted(k for outs, *_ in groups for k in outs) != list(range(n_outputs)):
+        return None
+    params, losses = np.zeros(n_params), np.empty(n_outputs)
+    for outs, cols, values, group_losses in groups:
+        params[cols] = values
+        losses[outs] = group_losses
+    return _result(n_params, params, losses, losses[None], config)
 
 
 def _check_program(
@@ -780,8 +809,9 @@ def _linear_fit(
     """The exact fit of a candidate that is affine in ``p``; None if it is not affine.
 
     ``values_at(probes [B, P])`` returns the predictions ``[B, K, N]`` (operator applied). The
-    candidate is evaluated at ``p = 0`` and at the unit vectors (on the host in NumPy for a
-    lowered program, else eagerly op by op: nothing is compiled for it), which gives
+    candidate is evaluated at ``p = 0`` and at the unit vectors (on the host in NumPy, a group
+    of outputs at a time, for a lowered program: :func:`_affine_groups`; else eagerly op by op:
+    nothing is compiled for it), which gives
     ``pred(p) = b + A p`` if it is affine; affinity is then verified at two random points
     (relative tolerance 1e-9). The weighted least-squares problem
     ``min_p sum_k sum_n scale[k, n]**2 (b + A p - target)[k, n]**2`` (the summed NMSE) is solved
@@ -1049,14 +1079,6 @@ def fit_batch(
             features.pop(i, None)
 
     def values_at(i: int) -> Callable[[np.ndarray], Any]:
-        if i in programs:
-
-            def numpy_values(probes: np.ndarray, out: np.ndarray) -> None:
-                rows = list(feature_values(i))
-                values = interp.evaluate_numpy(programs[i], rows, probes, n)
-                out[...] = values if band is None else lm.apply_band(band, values, out=values)
-
-            return _by_probes(numpy_values, n_outputs, n)
         model = models[i]
         return lambda probes: jax.vmap(lambda q: _predict(model, data, q, n_outputs))(
             jnp.asarray(probes)
@@ -1067,18 +1089,20 @@ def fit_batch(
     if config.linear_shortcut:
         for i in list(models):
             m = models[i]
-            fitted = _linear_fit(values_at(i), m.n_params, m.seed, targets_np, scale_np, config)
+            if i in programs:  # a group of outputs at a time; the rest is left to LM below
+                exact[i] = _affine_groups(
+                    programs[i], feature_values(i), m.seed, targets_np, scale_np, band, config
+                )
+                fitted = _exact_fit(exact[i], m.n_params, n_outputs, config)
+            else:
+                fitted = _linear_fit(values_at(i), m.n_params, m.seed, targets_np, scale_np, config)
             if fitted is not None:
                 n_real = int(skeletons[i].n_params)
                 results[i] = dataclasses.replace(fitted, params=fitted.params[:n_real])
                 del models[i]
                 features.pop(i, None)
+                exact.pop(i, None)
     lowered = [i for i in models if i in programs]
-    if config.linear_shortcut:
-        for i in lowered:
-            exact[i] = _affine_groups(
-                programs[i], feature_values(i), models[i].seed, targets_np, scale_np, band, config,
-            )  # fmt: skip
     if lowered:
         try:
             if config.backend == "host" and config.adam_steps == 0:

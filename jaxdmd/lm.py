@@ -115,7 +115,7 @@ class OutputGroup:
         self.cols = sorted({g for k in outputs for g in parts[k].params.tolist()})
         position = {g: j for j, g in enumerate(self.cols)}
         self.terms = [
-            (parts[k], np.array([position[g] for g in parts[k].params.tolist()]), k)
+            (parts[k], np.array([position[g] for g in parts[k].params.tolist()], np.intp), k)
             for k in outputs
         ]
         self.rows, self.targets, self.scale, self.band = rows, targets, scale, band

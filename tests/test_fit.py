@@ -310,3 +310,46 @@ def test_the_operator_shares_its_buffers_with_its_band_matrix() -> None:
     assert np.shares_memory(band.data, np.asarray(operator.weight))
     y = np.random.default_rng(1).normal(size=n)
     np.testing.assert_allclose(band @ y, np.asarray(operator(y)), rtol=1e-12, atol=1e-12)
+
+
+def test_a_lowered_candidate_is_solved_one_group_of_outputs_at_a_time() -> None:
+    """At long recordings the predictions of a candidate at its probes (``[P + 3, K, N]``) are
+    the largest array of a fit: a lowered candidate is solved a group of outputs (linked by
+    shared parameters) at a time, so only one group's predictions are held. The fit is the
+    whole candidate's (through its traced function), including an output with no parameter."""
+    import tracemalloc
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    names = ("x", "y", "z")
+    data = {v: rng.normal(size=n) for v in names}
+    x, y, z = (data[v] for v in names)
+    targets = np.stack([
+        1.5 * x - 0.5 * y * z + 0.2,
+        -2.0 * y + 0.7 * x * x,
+        3.0 * z - 2.0 * y + 0.1 * rng.normal(size=n),
+        x * y + 0.3 * rng.normal(size=n),
+        *(j * x - z for j in range(4)),
+    ])  # fmt: skip
+    more = "".join(f"            p[{9 + 2 * j}] * x + p[{10 + 2 * j}] * z,\n" for j in range(4))
+    source = (
+        "def f(x, y, z, p):\n"
+        "    return (p[0] * x + p[1] * y * z + p[2] + p[3] * x * y * z,\n"
+        "            p[4] * y + p[5] * x * x + p[6] * x * z,\n"
+        "            p[7] * z + p[4] * y + p[8] * y * y,\n"
+        "            x * y,\n" + more + "            )\n"
+    )
+    sk = compile_skeleton(source, variables=names, n_outputs=8)
+    key = jax.random.key(0)
+    tracemalloc.start()
+    (grouped,) = fit_batch([sk], data, targets, key=key)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    (whole,) = fit_batch([sk], data, targets, key=key, config=FitConfig(interpreter=False))
+    assert grouped.error is None and whole.error is None
+    np.testing.assert_allclose(grouped.params, whole.params, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(grouped.losses, whole.losses, rtol=1e-9)
+    np.testing.assert_allclose(grouped.params[[0, 1, 2, 4, 5, 7]], [1.5, -0.5, 0.2, -2, 0.7, 3],
+                               atol=0.02)  # fmt: skip
+    predictions = (sk.n_params + 3) * 8 * n * 8  # bytes of the candidate's [P + 3, K, N]
+    assert peak < predictions / 2, (peak, predictions)
