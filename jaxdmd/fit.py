@@ -260,6 +260,10 @@ class Operator:
             self._band = lm.band_matrix(self.index, self.weight)
         return self._band
 
+    def __getstate__(self) -> dict[str, Any]:
+        # the band is rebuilt where it is used: pickled, it would travel (and be held) as a copy
+        return {**self.__dict__, "_band": None}
+
     def __call__(self, y: Array) -> Array:
         return jnp.sum(y[..., self.index] * self.weight, axis=-1)
 

@@ -310,6 +310,13 @@ def test_the_operator_shares_its_buffers_with_its_band_matrix() -> None:
     assert np.shares_memory(band.data, np.asarray(operator.weight))
     y = np.random.default_rng(1).normal(size=n)
     np.testing.assert_allclose(band @ y, np.asarray(operator(y)), rtol=1e-12, atol=1e-12)
+    # sent to a worker, it travels without its band (a copy there), and builds it there
+    import pickle
+
+    sent = pickle.loads(pickle.dumps(operator))
+    assert len(pickle.dumps(operator)) < 1.5 * (index.size * 4 + weight.nbytes)
+    assert np.shares_memory(sent.band.data, np.asarray(sent.weight))
+    np.testing.assert_array_equal(sent.band @ y, band @ y)
 
 
 def test_a_lowered_candidate_is_solved_one_group_of_outputs_at_a_time() -> None:
