@@ -708,19 +708,19 @@ PROBE_CHUNK = 1 << 22
 
 
 def _by_probes(
-    evaluate: Callable[[np.ndarray, np.ndarray], None], n_outputs: int, n: int
+    predict: Callable[[np.ndarray], np.ndarray], n_outputs: int, n: int
 ) -> Callable[[np.ndarray], np.ndarray]:
-    """``values_at(probes [B, P]) -> [B, K, N]`` for :func:`_linear_fit` from ``evaluate(probes,
-    out)``, which writes the predictions at a few probes into ``out``: the probes go a few at a
-    time (about :data:`PROBE_CHUNK` elements), so that the evaluation's temporaries (registers,
-    the operator's product) stay that small. Every probe's predictions are computed
-    element-wise, by the same operations as with all probes at once (same to the last bit)."""
+    """``values_at(probes [B, P]) -> [B, K, N]`` for :func:`_linear_fit` from ``predict(probes)``,
+    the predictions at a few probes: the probes go a few at a time (about :data:`PROBE_CHUNK`
+    elements), so that the evaluation's temporaries (registers, the operator's product) stay
+    that small. Every probe's predictions are computed element-wise, by the same operations as
+    with all probes at once (same to the last bit)."""
 
     def values_at(probes: np.ndarray) -> np.ndarray:
         out = np.empty((len(probes), n_outputs, n))
         step = max(1, PROBE_CHUNK // max(1, n_outputs * n))
         for start in range(0, len(probes), step):
-            evaluate(probes[start : start + step], out[start : start + step])
+            out[start : start + step] = predict(probes[start : start + step])
         return out
 
     return values_at
@@ -760,10 +760,7 @@ def _affine_groups(
                 found.append((outs, [], np.zeros(0), losses))
             continue
 
-        def predict(probes: np.ndarray, out: np.ndarray, group: lm.OutputGroup = group) -> None:
-            out[...] = group.predict(probes)
-
-        values_at = _by_probes(predict, len(outs), targets.shape[1])
+        values_at = _by_probes(group.predict, len(outs), targets.shape[1])
         fitted = _linear_fit(values_at, n_p, seed, targets[outs], scale[outs], config)
         if fitted is not None:
             found.append((outs, group.cols, fitted.params, fitted.losses))
