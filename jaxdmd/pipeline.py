@@ -405,12 +405,23 @@ def _searches_side_by_side(
     states: dict[int, SearchState] = {}
     choices: dict[int, Equations] = {}
 
+    # the cores the choices' workers may take once the searches' workers are done: at most
+    # jobs - 1 at once beside this process (resumed searches all end at once, and their
+    # choices would otherwise all start together, each holding the problem)
+    free = threading.Semaphore(max(jobs - 1, 1))
+    ending = threading.Event()
+
     def choose_when_free(i: int, task: tuple[Any, ...]) -> None:
         """Start search i's choice in a worker once the workers' searches are done (their
-        cores are then free; before, it would slow the search running here)."""
+        cores are then free; before, it would slow the search running here) and fewer than
+        ``jobs - 1`` other choices run in workers."""
         for worker in running.values():
             worker.wait()
-        choosing[i] = workers.start(_choice_task, *task)
+        with free:
+            if ending.is_set():  # this call is ending (it raised): start nothing more
+                return
+            choosing[i] = workers.start(_choice_task, *task)
+            choosing[i].wait()
 
     try:
         for i in away:
@@ -443,11 +454,12 @@ def _searches_side_by_side(
             if i not in choices:  # its worker failed or could not be started: the same choice
                 choices[i] = choose(states[i])
     finally:
-        for worker in running.values():
+        ending.set()
+        for worker in [*running.values(), *choosing.values()]:
             worker.stop()
-        for starter in starters:  # they start nothing more once the search workers ended
+        for starter in starters:  # they start nothing more once ending is set
             starter.join()
-        for worker in choosing.values():
+        for worker in list(choosing.values()):
             worker.stop()
     return [states[i] for i in range(len(names))], [choices[i] for i in range(len(names))]
 

@@ -75,7 +75,7 @@ def _recordings(n: int = 3) -> list[Dataset]:
 
 
 def test_searches_side_by_side_in_worker_processes_give_the_archives_of_one_after_the_other(
-    tmp_path,
+    tmp_path, monkeypatch
 ):
     config = DiscoveryConfig(
         search=SearchConfig(n_islands=2, prompts_per_round=2, samples_per_prompt=2, max_rounds=3),
@@ -122,6 +122,40 @@ def test_searches_side_by_side_in_worker_processes_give_the_archives_of_one_afte
         assert f"start {name}" in messages
         assert f"{name} 1" in messages
     assert not any("worker process failed" in m for m in messages)
+
+    # resumed, the three searches are done at once: their choices still take at most jobs - 1
+    # workers at a time beside this process (before, both choices' workers started together).
+    # The workers here are stand-ins that compute in this process and count as running until
+    # waited for, so that the count does not depend on how fast a process starts
+    running: list[bool] = []
+    counts: list[int] = []
+
+    class Stand:
+        def __init__(self, fn, args):
+            self.fn, self.args, self.index, self.value = fn, args, len(running), None
+            counts.append(sum(running))
+            running.append(True)
+
+        def wait(self):
+            if running[self.index]:
+                self.value = self.fn(*self.args, progress=lambda message: None)
+                running[self.index] = False
+
+        def result(self):
+            self.wait()
+            return self.value
+
+        def stop(self):
+            running[self.index] = False
+
+    monkeypatch.setattr(workers, "start", lambda fn, *args, **kw: Stand(fn, args))
+    resumed = jaxdmd.discover(
+        train, (), dataclasses.replace(config, jobs=2), key=jax.random.key(3),
+        checkpoints=tmp_path / "two",
+    )  # fmt: skip
+    assert counts == [0, 0]
+    assert resumed.de.source == two.de.source and resumed.de.params == two.de.params
+    assert resumed.report["de"]["searches"] == two.report["de"]["searches"]
 
 
 def _items(n: int, *, progress) -> list[int]:
