@@ -410,6 +410,7 @@ def _searches_side_by_side(
     # choices would otherwise all start together, each holding the problem)
     free = threading.Semaphore(max(jobs - 1, 1))
     ending = threading.Event()
+    starting = threading.Lock()  # a choice's worker starts wholly before or after the ending
 
     def choose_when_free(i: int, task: tuple[Any, ...]) -> None:
         """Start search i's choice in a worker once the workers' searches are done (their
@@ -418,9 +419,10 @@ def _searches_side_by_side(
         for worker in running.values():
             worker.wait()
         with free:
-            if ending.is_set():  # this call is ending (it raised): start nothing more
-                return
-            choosing[i] = workers.start(_choice_task, *task)
+            with starting:
+                if ending.is_set():  # this call is ending (it raised): start nothing more
+                    return
+                choosing[i] = workers.start(_choice_task, *task)
             choosing[i].wait()
 
     try:
@@ -454,13 +456,13 @@ def _searches_side_by_side(
             if i not in choices:  # its worker failed or could not be started: the same choice
                 choices[i] = choose(states[i])
     finally:
-        ending.set()
+        with starting:
+            ending.set()
+        # every choice worker started is here now, and no other will start
         for worker in [*running.values(), *choosing.values()]:
             worker.stop()
-        for starter in starters:  # they start nothing more once ending is set
+        for starter in starters:
             starter.join()
-        for worker in list(choosing.values()):
-            worker.stop()
     return [states[i] for i in range(len(names))], [choices[i] for i in range(len(names))]
 
 
