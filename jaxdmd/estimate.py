@@ -29,6 +29,7 @@ the data as a differentiable function of the AE parameters (``jaxdmd.refine.refi
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -49,13 +50,14 @@ class StateEstimate:
     """A recording with its states replaced by the model-based smoothed estimates.
 
     ``covariance`` [n, S, S] is the posterior covariance of the states (``states`` order) per
-    sample; ``process`` the chosen process-noise factor and ``noise`` the measurement-noise
-    variance per state; ``log_likelihood`` of the innovations at the chosen factors.
+    sample (None in a copy made by :func:`without_covariance`); ``process`` the chosen
+    process-noise factor and ``noise`` the measurement-noise variance per state;
+    ``log_likelihood`` of the innovations at the chosen factors.
     """
 
     dataset: Dataset
     states: tuple[str, ...]
-    covariance: np.ndarray
+    covariance: np.ndarray | None
     process: dict[str, float]
     noise: dict[str, float]
     log_likelihood: float
@@ -64,6 +66,14 @@ class StateEstimate:
     def from_model(self) -> bool:
         """Estimated with a process model (:class:`ModelSmoother`), not a generic smoother."""
         return bool(self.process)
+
+
+def without_covariance(estimate: StateEstimate) -> StateEstimate:
+    """``estimate`` without its covariances: what is sent to work in another process that does
+    not read them (the joint refits), since they are most of an estimate's size
+    (``[n, S, S]`` against the recording's ``[channels, n]``: 80 of 147 MB at four recordings
+    of 1e5 samples)."""
+    return dataclasses.replace(estimate, covariance=None)
 
 
 def _transition(rate):
@@ -219,7 +229,7 @@ class ModelSmoother:
         n_states = len(states)
         names = set(de.arguments) | (set(ae.arguments) if ae is not None else set())
         others = tuple(sorted(names - set(states)))
-        self._prepared, rates = [], []
+        prepared, rates = [], []
         for ds, var in zip(self.datasets, self.noise, strict=True):
             t = np.asarray(ds.t, dtype=float)
             y = np.stack([np.asarray(ds[s], dtype=float) for s in (*states, *self.targets)], 1)
@@ -227,18 +237,26 @@ class ModelSmoother:
             left = jnp.asarray(event_samples(t, ds.events)[1:])
             floor = 1e-12 * np.var(y[:, :n_states], axis=0) + 1e-300
             r = np.maximum([var[s] for s in states], floor)
-            self._prepared.append((jnp.asarray(y), u, jnp.asarray(np.diff(t)), left, r))
+            prepared.append((jnp.asarray(y), u, jnp.asarray(np.diff(t)), left, r))
             estimated = ds.with_estimated_derivatives()
             rates.append(np.stack([estimated.derivative(s) for s in states], axis=1))
         scale = np.sqrt(np.mean(np.concatenate(rates) ** 2, axis=0)) + 1e-300
-        lengths = sorted({int(d[0].shape[0]) for d in self._prepared})
+        lengths = sorted({int(d[0].shape[0]) for d in prepared})
+        # the recordings are held once, stacked by length; recording k is row where[k][1] of
+        # batch where[k][0]
+        self._where = [
+            (lengths.index(int(d[0].shape[0])),
+             sum(1 for e in prepared[:k] if e[0].shape[0] == d[0].shape[0]))
+            for k, d in enumerate(prepared)
+        ]  # fmt: skip
         self._batches = [
             jax.tree.map(
                 lambda *a: jnp.stack([jnp.asarray(x) for x in a]),
-                *[d for d in self._prepared if d[0].shape[0] == n],
+                *[d for d in prepared if d[0].shape[0] == n],
             )
             for n in lengths
         ]
+        del prepared
         de_p = jnp.asarray(de_params, dtype=jnp.float64)
         step = _transition(_call(de.fn, de_p, de.arguments, states))
 
@@ -271,12 +289,17 @@ class ModelSmoother:
                 q = jnp.asarray((trial * scale) ** 2)
                 total = sum(
                     np.asarray(states_only(q, jnp.asarray(r), y[:, :n_states], u, h, left))
-                    for y, u, h, left, r in self._prepared
+                    for y, u, h, left, r in map(self._recording, range(len(self.datasets)))
                 )
                 total = np.where(np.isfinite(total), total, -np.inf)
                 factors[i] = grid_arr[int(np.argmax(total))]
         self.process = dict(zip(states, factors.tolist(), strict=True))
         self._q = jnp.asarray((factors * scale) ** 2)
+
+    def _recording(self, k: int) -> tuple[Any, ...]:
+        """Recording ``k`` as arrays: its measurements, inputs, steps, event flags and noise."""
+        batch, row = self._where[k]
+        return jax.tree.map(lambda v: v[row], self._batches[batch])
 
     @property
     def recordings(self) -> list[tuple[Any, ...]]:
@@ -305,9 +328,8 @@ class ModelSmoother:
         """The smoothed states of every recording (the states measured, not the AE targets)."""
         n_states = len(self.states)
         out = []
-        for ds, (y, u, h, left, r), var in zip(
-            self.datasets, self._prepared, self.noise, strict=True
-        ):
+        for k, (ds, var) in enumerate(zip(self.datasets, self.noise, strict=True)):
+            y, u, h, left, r = self._recording(k)
             m, cov, ll = self._run_states(self._q, jnp.asarray(r), y[:, :n_states], u, h, left)
             values = {s: np.asarray(m[:, j]) for j, s in enumerate(self.states)}
             out.append(
@@ -339,4 +361,10 @@ def model_smoother(
     return smoother.smooth()
 
 
-__all__ = ["PROCESS_GRID", "ModelSmoother", "StateEstimate", "model_smoother"]
+__all__ = [
+    "PROCESS_GRID",
+    "ModelSmoother",
+    "StateEstimate",
+    "model_smoother",
+    "without_covariance",
+]

@@ -39,7 +39,7 @@ import numpy as np
 
 from jaxdmd import search, workers
 from jaxdmd.data import Dataset
-from jaxdmd.estimate import StateEstimate
+from jaxdmd.estimate import StateEstimate, without_covariance
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
@@ -922,7 +922,13 @@ def discover(
             # they are now, and are used if the closed selection keeps them
             if fine and config.ae_joint and jobs > 1:
                 observer.message(_JOINT_MESSAGE)
-                task = (refit_algebraic, de, ae, train, estimates, weights, config, weighted)
+                # the bias compensation, the one refit that reads the states' covariances, runs
+                # here (a fraction of a second); the worker is sent the estimates without them
+                compensated = compensated_algebraic(ae, estimates, weights, config)
+                task = (
+                    refit_algebraic, de, ae, train, [without_covariance(e) for e in estimates],
+                    compensated, config, weighted,
+                )  # fmt: skip
                 refits_ahead = (de, workers.start(*task))
             start = time.perf_counter()
             starts = [front_lines(selection or {}, t) for t in de.contract.targets]
@@ -957,8 +963,9 @@ def discover(
                 observer.message(_JOINT_MESSAGE)
 
             def refit_here() -> tuple[Equations, Any, Any]:
+                compensated = compensated_algebraic(ae, estimates, weights, config)
                 with workers.one_blas_thread():  # as in the worker: the same refits either way
-                    return refit_algebraic(de, ae, train, estimates, weights, config, weighted)
+                    return refit_algebraic(de, ae, train, estimates, compensated, config, weighted)
 
             ae, bias_report, joint_report = _ahead_or_here(refits_ahead, de, refit_here, observer)
             ae_seconds += time.perf_counter() - start
@@ -1136,12 +1143,26 @@ def _ahead_or_here(
     return here()
 
 
+def compensated_algebraic(
+    ae: Equations, estimates: Sequence[StateEstimate], weights: Any, config: DiscoveryConfig
+) -> tuple[Equations, dict[str, str]] | None:
+    """The AE equations refitted by bias-compensated least squares on the estimated states
+    (:func:`jaxdmd.refine.refit_bias_compensated`; ``weights``: the problem's sample weights,
+    None for none), with one BLAS thread, as :func:`refit_algebraic` runs everywhere; None if
+    ``config.ae_bias_correction`` is off. The only refit that reads the states' covariances:
+    it runs where they are, and :func:`refit_algebraic` judges its result."""
+    if not config.ae_bias_correction:
+        return None
+    with workers.one_blas_thread():
+        return refit_bias_compensated(ae, estimates, weights)
+
+
 def refit_algebraic(
     de: Equations,
     ae: Equations,
     train: Sequence[Dataset],
     estimates: Sequence[StateEstimate],
-    weights: Any,
+    compensated: tuple[Equations, dict[str, str]] | None,
     config: DiscoveryConfig,
     state: SearchState | None = None,
     *,
@@ -1149,20 +1170,23 @@ def refit_algebraic(
 ) -> tuple[Equations, dict[str, Any] | None, dict[str, Any] | None]:
     """The AE equations refitted on the estimated states, each refit kept only if the model
     then simulates the training recordings no worse (:class:`Judge`): bias-compensated least
-    squares (``config.ae_bias_correction``; ``weights``: the problem's sample weights, None for
-    none), then, with model-estimated states, maximum likelihood with the states unknown
+    squares (``compensated``: :func:`compensated_algebraic`'s result, None for none), then,
+    with model-estimated states, maximum likelihood with the states unknown
     (``config.ae_joint``), and the lines that then do not hold and that the state equations
     use rebuilt from products of those that do, judged by the same likelihood
     (:func:`jaxdmd.refine.refit_joint_products`, given ``state``, the AE problem on the
     estimated states) and then, as every refit, by the training rollouts. What
     :func:`discover` runs once the state equations are chosen, here or in a worker process
-    (``progress`` unused: the task signature of :mod:`jaxdmd.workers`). Returns the equations
-    and the two refits' reports (None: not run)."""
+    (``progress`` unused: the task signature of :mod:`jaxdmd.workers`). The states'
+    covariances are not read: a worker is sent the estimates without them
+    (:func:`jaxdmd.estimate.without_covariance`). Returns the equations and the two refits'
+    reports (None: not run)."""
     judge = Judge(train, config.selection)
     bias_report = joint_report = None
-    if config.ae_bias_correction:
-        compensated, bias_report = refit_bias_compensated(ae, estimates, weights)
-        ae = judge.better(ae, compensated, bias_report, de=de)
+    if compensated is not None:
+        refitted, bias_report = compensated
+        bias_report = dict(bias_report)  # the judge writes its verdict into the report
+        ae = judge.better(ae, refitted, bias_report, de=de)
     if estimates[0].from_model and config.ae_joint:
         start = time.perf_counter()
         try:

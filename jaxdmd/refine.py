@@ -23,7 +23,7 @@ import numpy as np
 from jaxdmd import lines as ln
 from jaxdmd import search, select
 from jaxdmd.data import Dataset
-from jaxdmd.estimate import StateEstimate, model_smoother
+from jaxdmd.estimate import StateEstimate, model_smoother, without_covariance
 from jaxdmd.fit import FitConfig
 from jaxdmd.problems import EstimatorGains, de_problem, estimator_gains
 from jaxdmd.search import Equations
@@ -129,6 +129,11 @@ def refit_bias_compensated(
     Returns the equations and, per target, what was done.
     """
 
+    if any(e.covariance is None for e in estimates):
+        raise ValueError(
+            "the bias compensation needs the states' covariances; these estimates have none "
+            "(estimate.without_covariance)"
+        )
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
@@ -167,7 +172,7 @@ def refit_bias_compensated(
             noisy = [names.index(s) for s in estimate.states if s in names]
             rows = [estimate.states.index(names[a]) for a in noisy]
             jac = np.asarray(sensitivity(args, zero))[:, :, noisy]  # [n, P, A] d feature/d state
-            cov = estimate.covariance[:, rows][:, :, rows]  # [n, A, A]
+            cov = np.asarray(estimate.covariance)[:, rows][:, :, rows]  # [n, A, A]
             y = np.asarray(ds[target], dtype=float) - offset
             if weights is None:
                 gram = gram + g.T @ g
@@ -335,7 +340,8 @@ def joint_likelihood(
     each, as here: the same ratings either way)."""
     from jaxdmd import workers
 
-    args = (datasets, estimates, max_steps)
+    # a rating does not read the states' covariances: the workers are sent them without
+    args = (datasets, [without_covariance(e) for e in estimates], max_steps)
 
     def rate(equations: Sequence[Equations]) -> list[float]:
         equations = list(equations)

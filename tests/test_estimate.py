@@ -323,16 +323,20 @@ def test_the_ae_refits_in_a_worker_process_are_the_refits_here():
     and uses them if that selection keeps the state equations: they must be the refits it would
     run here afterwards, to the last bit, reports included (times aside)."""
     from jaxdmd import workers
-    from jaxdmd.pipeline import DiscoveryConfig, refit_algebraic
+    from jaxdmd.estimate import without_covariance
+    from jaxdmd.pipeline import DiscoveryConfig, compensated_algebraic, refit_algebraic
     from jaxdmd.refine import model_states
 
     recordings, de, contract = _sine_measured(noise=0.03)
     estimates = model_states(de, recordings)
     start = Equations(contract, SINE, (1.9,), (0.0,), 0.0)
     config = DiscoveryConfig(ae_joint_steps=300)
-    task = (refit_algebraic, de, start, recordings, estimates, None, config)
-    worker = workers.start(*task)
-    here = refit_algebraic(*task[1:])
+    compensated = compensated_algebraic(start, estimates, None, config)
+    assert compensated is not None
+    # the worker is sent the estimates without their covariances, as discover sends them
+    light = [without_covariance(e) for e in estimates]
+    worker = workers.start(refit_algebraic, de, start, recordings, light, compensated, config)
+    here = refit_algebraic(de, start, recordings, estimates, compensated, config)
     away = worker.result()
     for refits in (here, away):
         assert refits[2].pop("seconds") > 0
