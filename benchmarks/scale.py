@@ -466,6 +466,9 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     cache = args.out / "source.npz"
     if args.child is not None:
+        from jaxdmd.workers import map_large_blocks
+
+        map_large_blocks()  # as the command line does
         if args.discover:
             result = discover_child(
                 cache, args.child, args.mode, args.rounds, args.joint_steps, args.jobs,

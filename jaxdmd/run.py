@@ -343,6 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
     args = parse_args(argv)
+    workers.map_large_blocks()  # this process is the command line's
     try:
         if args.command == "simulate":
             from jaxdmd.grid.cli import run_simulate

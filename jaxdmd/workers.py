@@ -174,8 +174,40 @@ class Later(Sequence[Any]):
         return self._resolved()[index]
 
 
+# glibc's ``mallopt`` parameter: the size from which a block is mapped on its own
+_M_MMAP_THRESHOLD = -3
+
+#: the block size (bytes) from which :func:`map_large_blocks` has the allocator map each block
+#: on its own
+LARGE_BLOCK = 1 << 20
+
+
+def map_large_blocks(threshold: int = LARGE_BLOCK) -> bool:
+    """Have the C library's allocator map every block of ``threshold`` bytes or more on its
+    own, so that freeing it gives its memory back to the system: what jaxdmd's own processes
+    (the command line, :mod:`jaxdmd._worker`, the benchmarks' children) call at their start.
+
+    glibc by default raises that threshold, up to 32 MB, each time a mapped block is freed:
+    later arrays of a few MB then come from the heap, and the holes they leave there stay
+    resident. At four recordings of 1e5 samples that held the main process about 180 MB above
+    what it used (docs/benchmarks.md, session 42). Arrays of the benchmark's length (1001
+    samples, below 1 MB) are not affected. A library function never calls this: the policy
+    is the whole process's. Returns whether the allocator took it (False where the C library
+    has no ``mallopt``: not glibc)."""
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt.restype = ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(threshold)))
+
+
 def serve() -> int:
     """The worker's side: read the task from stdin, run it, send the messages."""
+    map_large_blocks()
     out = sys.stdout.buffer
     sys.stdout = sys.stderr  # a print in the task must not corrupt the message stream
     lock = threading.Lock()
