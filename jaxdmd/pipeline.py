@@ -887,6 +887,7 @@ def discover(
         regressors = train if estimates is None else [e.dataset for e in estimates]
         states_seconds = time.perf_counter() - start
         fine = estimates is not None and estimates[0].from_model
+        states_summary = None if estimates is None else _estimate_summary(estimates)
         ae_state, ae, ae_seconds = loop(
             "AE", *ae_problem(regressors, de.contract), ae_key, config.ae_search(fine),
             floor=1e-5 if fine else 1e-4,
@@ -896,7 +897,7 @@ def discover(
         # (estimated from the loop's choice): what follows fits on the reweighted problem
         weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
         weights = weighted.problem.weights if recording_weights else None
-        ae_selection = refits_ahead = None
+        ae_selection = refits_ahead = compensated = None
         fit_choice = ae
         if config.selection is not None:
             start = time.perf_counter()
@@ -920,15 +921,11 @@ def discover(
             # the state equations chosen again, closed by the algebraic ones; with a second
             # core, the AE refits below start beside it in a worker for the state equations as
             # they are now, and are used if the closed selection keeps them
+            if estimates is not None:  # the AE equations are chosen: their bias compensation
+                compensated, estimates = _compensated(ae, estimates, weights, config)
             if fine and config.ae_joint and jobs > 1:
                 observer.message(_JOINT_MESSAGE)
-                # the bias compensation, the one refit that reads the states' covariances, runs
-                # here (a fraction of a second); the worker is sent the estimates without them
-                compensated = compensated_algebraic(ae, estimates, weights, config)
-                task = (
-                    refit_algebraic, de, ae, train, [without_covariance(e) for e in estimates],
-                    compensated, config, weighted,
-                )  # fmt: skip
+                task = (refit_algebraic, de, ae, train, estimates, compensated, config, weighted)
                 refits_ahead = (de, workers.start(*task))
             start = time.perf_counter()
             starts = [front_lines(selection or {}, t) for t in de.contract.targets]
@@ -961,9 +958,10 @@ def discover(
             start = time.perf_counter()
             if refits_ahead is None and fine and config.ae_joint:
                 observer.message(_JOINT_MESSAGE)
+            if estimates[0].covariance is not None:  # not compensated above (no selection)
+                compensated, estimates = _compensated(ae, estimates, weights, config)
 
             def refit_here() -> tuple[Equations, Any, Any]:
-                compensated = compensated_algebraic(ae, estimates, weights, config)
                 with workers.one_blas_thread():  # as in the worker: the same refits either way
                     return refit_algebraic(de, ae, train, estimates, compensated, config, weighted)
 
@@ -1014,8 +1012,8 @@ def discover(
             summary["selection"] = ae_selection
         if bias_report is not None:  # "params"/"equations" are then the refitted ones
             summary["bias_compensated"] = bias_report
-        if estimates is not None:
-            summary["states"] = _estimate_summary(estimates)
+        if states_summary is not None:
+            summary["states"] = states_summary
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
             summary["joint_refit"] = joint_report
         if simulation_report is not None:
@@ -1155,6 +1153,18 @@ def compensated_algebraic(
         return None
     with workers.one_blas_thread():
         return refit_bias_compensated(ae, estimates, weights)
+
+
+def _compensated(
+    ae: Equations, estimates: Sequence[StateEstimate], weights: Any, config: DiscoveryConfig
+) -> tuple[tuple[Equations, dict[str, str]] | None, list[StateEstimate]]:
+    """:func:`compensated_algebraic`, and the estimates without their covariances, which
+    nothing after it reads: at four recordings of 1e5 samples they are 80 MB that neither this
+    process nor the refits' worker then holds."""
+    return (
+        compensated_algebraic(ae, estimates, weights, config),
+        [without_covariance(e) for e in estimates],
+    )
 
 
 def refit_algebraic(
