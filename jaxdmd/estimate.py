@@ -241,21 +241,20 @@ class ModelSmoother:
             estimated = ds.with_estimated_derivatives()
             rates.append(np.stack([estimated.derivative(s) for s in states], axis=1))
         scale = np.sqrt(np.mean(np.concatenate(rates) ** 2, axis=0)) + 1e-300
-        lengths = sorted({int(d[0].shape[0]) for d in prepared})
-        # the recordings are held once, stacked by length; recording k is row where[k][1] of
+        # the recordings are held once, stacked by length: recording k is row where[k][1] of
         # batch where[k][0]
-        self._where = [
-            (lengths.index(int(d[0].shape[0])),
-             sum(1 for e in prepared[:k] if e[0].shape[0] == d[0].shape[0]))
-            for k, d in enumerate(prepared)
-        ]  # fmt: skip
-        self._batches = [
-            jax.tree.map(
-                lambda *a: jnp.stack([jnp.asarray(x) for x in a]),
-                *[d for d in prepared if d[0].shape[0] == n],
+        self._where: list[tuple[int, int]] = [(0, 0)] * len(prepared)
+        self._batches = []
+        for b, n in enumerate(sorted({int(d[0].shape[0]) for d in prepared})):
+            members = [k for k, d in enumerate(prepared) if d[0].shape[0] == n]
+            for row, k in enumerate(members):
+                self._where[k] = (b, row)
+            self._batches.append(
+                jax.tree.map(
+                    lambda *a: jnp.stack([jnp.asarray(x) for x in a]),
+                    *[prepared[k] for k in members],
+                )
             )
-            for n in lengths
-        ]
         del prepared
         de_p = jnp.asarray(de_params, dtype=jnp.float64)
         step = _transition(_call(de.fn, de_p, de.arguments, states))
