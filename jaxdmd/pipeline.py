@@ -40,6 +40,7 @@ import numpy as np
 from jaxdmd import search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import StateEstimate, without_covariance
+from jaxdmd.identities import measured_identities
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
@@ -1014,6 +1015,18 @@ def discover(
             summary["bias_compensated"] = bias_report
         if states_summary is not None:
             summary["states"] = states_summary
+        identities = measured_identities(weighted, ae)
+        if identities:
+            summary["identities"] = {i.target: i.as_dict() for i in identities}
+            held = "held-out recordings" if len(train) > 1 else "the recording"
+            observer.message(
+                f"Relations among the algebraic measurements that fit their variable on {held} "
+                "ten times better than its line in the states: "
+                + "; ".join(
+                    f"{i.text(4)} (NMSE {i.held_out_nmse:.2g}; the line {i.line_nmse:.2g})"
+                    for i in identities
+                )
+            )
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
             summary["joint_refit"] = joint_report
         if simulation_report is not None:

@@ -30,6 +30,7 @@ def equations_markdown(discovery: Discovery) -> str:
     lines = ["# Discovered model", ""]
     lines += equation_sections(discovery.de, discovery.ae)
     lines += holding_section(discovery.report.get("ae", {}).get("holds"))
+    lines += identities_section(discovery.report.get("ae", {}).get("identities"))
     frequency = discovery.report.get("de", {}).get("inclusion_frequency")
     searches = len(discovery.report.get("de", {}).get("searches", [])) or 1
     if frequency and searches > 1:
@@ -68,6 +69,28 @@ def holding_section(holds: Mapping[str, Any] | None) -> list[str]:
     for name, share in holds["error_share"].items():
         verdict = "**no**" if name in holds["not_holding"] else "yes"
         lines.append(f"| {pretty.symbol(name)} | {share:.2g} | {verdict} |")
+    return lines
+
+
+def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
+    """Markdown lines: the relations among the measured algebraic variables
+    (``summary["ae"]["identities"]``, from :func:`jaxdmd.identities.measured_identities`)."""
+    if not identities:
+        return []
+    lines = ["", "## Relations among the measured algebraic variables", ""]
+    lines += [
+        "On the measurements, each variable below is a sum of products of the other algebraic "
+        "variables (the simplest such sum within 25 % of the best held-out fit), and that "
+        "relation fits it on held-out recordings at least ten times better than its line in "
+        "the states above. The model keeps the line in the states (the closed model needs "
+        "nothing measured); the relation shows what that line may be missing or standing in "
+        "for.",
+        "",
+        "| relation | held-out NMSE | the line's |",
+        "|---|---|---|",
+    ]
+    for item in identities.values():
+        lines.append(f"| {item['text']} | {item['held_out_nmse']:.2g} | {item['line_nmse']:.2g} |")
     return lines
 
 
