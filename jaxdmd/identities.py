@@ -29,7 +29,7 @@ from jaxdmd import ties
 from jaxdmd.proposers.offline import subset_errors
 from jaxdmd.search import Equations, SearchState, cross_validated_losses, sample_weights
 
-__all__ = ["Identity", "measured_identities"]
+__all__ = ["Identity", "measured_identities", "nmse_text"]
 
 # the most products (and a constant) in a relation: a power is four (two products and the
 # armature losses' two squares)
@@ -81,6 +81,11 @@ class Identity:
         body = " + ".join(terms).replace("+ -", "- ")
         return f"{pretty.symbol(self.target)} = {body}"
 
+    def errors_text(self) -> str:
+        """Both held-out errors as the log and equations.md give them (below
+        :data:`EXACT_SUBSET`: round-off)."""
+        return f"{nmse_text(self.held_out_nmse)}; the line {nmse_text(self.line_nmse)}"
+
     def as_dict(self) -> dict[str, object]:
         return {
             "terms": [None if f is None else list(f) for f in self.factors],
@@ -89,6 +94,11 @@ class Identity:
             "line_nmse": self.line_nmse,
             "text": self.text(),
         }
+
+
+def nmse_text(value: float) -> str:
+    """An NMSE as text: two digits, or "< 1e-12" where it is round-off (:data:`EXACT_SUBSET`)."""
+    return f"{value:.2g}" if value >= EXACT_SUBSET else f"< {EXACT_SUBSET:g}"
 
 
 def measured_identities(

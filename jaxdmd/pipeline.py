@@ -1022,10 +1022,7 @@ def discover(
             observer.message(
                 f"Relations among the algebraic measurements that fit their variable on {held} "
                 "ten times better than its line in the states: "
-                + "; ".join(
-                    f"{i.text(4)} (NMSE {i.held_out_nmse:.2g}; the line {i.line_nmse:.2g})"
-                    for i in identities
-                )
+                + "; ".join(f"{i.text(4)} (NMSE {i.errors_text()})" for i in identities)
             )
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
             summary["joint_refit"] = joint_report

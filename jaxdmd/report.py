@@ -89,8 +89,11 @@ def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
         "| relation | held-out NMSE | the line's |",
         "|---|---|---|",
     ]
+    from jaxdmd.identities import nmse_text
+
     for item in identities.values():
-        lines.append(f"| {item['text']} | {item['held_out_nmse']:.2g} | {item['line_nmse']:.2g} |")
+        errors = (nmse_text(item["held_out_nmse"]), nmse_text(item["line_nmse"]))
+        lines.append(f"| {item['text']} | {errors[0]} | {errors[1]} |")
     return lines
 
 
