@@ -145,12 +145,15 @@ def measured_identities(
         if variance <= 0 or not np.all(np.isfinite(y)) or not others:
             continue
         pairs = list(itertools.combinations_with_replacement(others, 2))
-        x = np.stack([np.ones_like(y), *(values[a] * values[b] for a, b in pairs)], axis=1)
         root = np.sqrt(sample_weights(problem, j))
-        xw, yw = x * root[:, None], y * root
+        xw = np.empty((len(y), 1 + len(pairs)))  # the weighted columns, one array
+        xw[:, 0] = root
+        for c, (a, b) in enumerate(pairs, start=1):
+            np.multiply(values[a] * values[b], root, out=xw[:, c])
+        yw = y * root
         scale = len(y) * variance
         best = []
-        for subsets, sse in subset_errors(xw, yw, folds, min(size, x.shape[1])):
+        for subsets, sse in subset_errors(xw, yw, folds, min(size, xw.shape[1])):
             i = ties.argmin(sse)
             best.append((max(float(sse[i]) / scale, 0.0), [int(c) for c in subsets[i]]))
         least = max(min(e for e, _ in best), EXACT_SUBSET)  # exact subsets tie
