@@ -28,6 +28,7 @@ from jaxdmd import lines as ln
 from jaxdmd import ties
 from jaxdmd.proposers.offline import subset_errors
 from jaxdmd.search import Equations, SearchState, cross_validated_losses, sample_weights
+from jaxdmd.select import _folds
 
 __all__ = ["Identity", "measured_identities", "nmse_text"]
 
@@ -126,11 +127,7 @@ def measured_identities(
     if problem.operator is not None or len(targets) < 2:
         return []
     values = np.asarray(problem.targets, dtype=float)  # [targets, samples]
-    groups = (
-        np.zeros(values.shape[1], dtype=int)
-        if problem.groups is None
-        else np.asarray(problem.groups)
-    )
+    groups = _folds(state)  # the recordings, as the selection holds them out
     folds = [groups == g for g in np.unique(groups)]
     held_out = len(folds) > 1
     lines, _ = ln.split_lines(equations.source)

@@ -75,6 +75,8 @@ def holding_section(holds: Mapping[str, Any] | None) -> list[str]:
 def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
     """Markdown lines: the relations among the measured algebraic variables
     (``summary["ae"]["identities"]``, from :func:`jaxdmd.identities.measured_identities`)."""
+    from jaxdmd.identities import nmse_text
+
     if not identities:
         return []
     lines = ["", "## Relations among the measured algebraic variables", ""]
@@ -89,8 +91,6 @@ def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
         "| relation | held-out NMSE | the line's |",
         "|---|---|---|",
     ]
-    from jaxdmd.identities import nmse_text
-
     for item in identities.values():
         errors = (nmse_text(item["held_out_nmse"]), nmse_text(item["line_nmse"]))
         lines.append(f"| {item['text']} | {errors[0]} | {errors[1]} |")
