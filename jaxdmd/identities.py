@@ -19,18 +19,30 @@ better than the variable's line in the states does. Nothing here knows what any 
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxdmd import lines as ln
 from jaxdmd import ties
+from jaxdmd.fit import nmse
 from jaxdmd.proposers.offline import subset_errors
-from jaxdmd.search import Equations, SearchState, cross_validated_losses, sample_weights
+from jaxdmd.search import (
+    Equations,
+    SearchState,
+    _compile,
+    cross_validated_losses,
+    sample_weights,
+)
 from jaxdmd.select import _folds
+from jaxdmd.skeleton import SkeletonError
 
-__all__ = ["Identity", "measured_identities", "nmse_text"]
+__all__ = ["Identity", "measured_identities", "nmse_text", "with_identities"]
 
 # the most products (and a constant) in a relation: a power is four (two products and the
 # armature losses' two squares)
@@ -176,3 +188,66 @@ def measured_identities(
             )
         )
     return out
+
+
+def with_identities(
+    equations: Equations, identities: Sequence[Identity], state: SearchState
+) -> Equations | None:
+    """``equations`` with each of ``identities``' variables written as its relation in the
+    model's own lines: the skeleton computes the other variables' lines first and then the
+    relation from their outputs by name (``P_e_ = p[12] * i_q_ * v_q_ + ...``), each term's
+    coefficient a parameter set to the relation's measured coefficient. The closed model then
+    computes the variable as the measurements relate it to the others (a machine's power from
+    its modelled currents and voltages, armature losses included), not as a fit of the
+    estimated states that passes through their errors; and whatever later changes those lines
+    changes it with them. ``equations`` must have no such relation yet (one line per output).
+    Each relation's line is scored on ``state``'s problem (its NMSE). None where a relation
+    reads a variable that is itself written as a relation, or where the equations would not
+    compile (over a skeleton's budget)."""
+    contract = equations.contract
+    targets = list(contract.targets)
+    outputs = list(contract.outputs)
+    written = {i.target: i for i in identities}
+    if any(v in written for i in identities for f in i.factors if f is not None for v in f):
+        return None
+    lines, maps = ln.split_lines(equations.source)
+    body: list[str] = []
+    params: list[float] = []
+    kept = [k for k, t in enumerate(targets) if t not in written]
+    for k in kept:
+        renumber = ln._Renumber(len(params))
+        expr = ast.fix_missing_locations(renumber.visit(ln.copy_tree(lines[k].expr)))
+        body.append(f"    {outputs[k]} = {ast.unparse(expr)}")
+        params += [float(equations.params[i]) for i in maps[k]]
+    for identity in identities:
+        terms = []
+        for f, c in zip(identity.factors, identity.coefficients, strict=True):
+            n = len(params)
+            params.append(float(c))
+            if f is None:
+                terms.append(f"p[{n}]")
+            else:
+                a, b = (outputs[targets.index(v)] for v in f)
+                terms.append(f"p[{n}] * {a} * {b}")
+        body.append(f"    {outputs[targets.index(identity.target)]} = {' + '.join(terms)}")
+    used = set().union(*(lines[k].variables() for k in kept))
+    args = [a for a in contract.arguments if a in used]
+    source = "\n".join(
+        [f"def {contract.function_name}({', '.join([*args, 'p'])}):", *body,
+         f"    return {', '.join(outputs)}"]
+    ) + "\n"  # fmt: skip
+    try:
+        skeleton = _compile(source, contract)
+    except SkeletonError:
+        return None
+    problem = state.problem
+    data = {n: jnp.asarray(problem.variables[n]) for n in skeleton.arguments}
+    predicted = np.asarray(skeleton(data, jnp.asarray(params)))
+    values = np.asarray(problem.targets, dtype=float)
+    losses = list(equations.losses)
+    for identity in identities:
+        j = targets.index(identity.target)
+        losses[j] = float(nmse(predicted[j], values[j], sample_weights(problem, j))[0])
+    return dataclasses.replace(
+        equations, source=skeleton.source, params=tuple(params), losses=tuple(losses)
+    )

@@ -40,7 +40,7 @@ import numpy as np
 from jaxdmd import search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import StateEstimate, without_covariance
-from jaxdmd.identities import measured_identities
+from jaxdmd.identities import Identity, measured_identities, with_identities
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
@@ -1016,14 +1016,6 @@ def discover(
         if states_summary is not None:
             summary["states"] = states_summary
         identities = measured_identities(weighted, ae)
-        if identities:
-            summary["identities"] = {i.target: i.as_dict() for i in identities}
-            held = "held-out recordings" if len(train) > 1 else "the recording"
-            observer.message(
-                f"Relations among the algebraic measurements that fit their variable on {held} "
-                "ten times better than its line in the states: "
-                + "; ".join(f"{i.text(4)} (NMSE {i.errors_text()})" for i in identities)
-            )
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
             summary["joint_refit"] = joint_report
         if simulation_report is not None:
@@ -1035,6 +1027,22 @@ def discover(
                 observer.message(
                     "AE equations that do not hold with the states unknown (their terms are "
                     "suspect): " + ", ".join(holds["not_holding"])
+                )
+        if identities:
+            held = "held-out recordings" if len(train) > 1 else "the recording"
+            observer.message(
+                f"Relations among the algebraic measurements that fit their variable on {held} "
+                "ten times better than its line in the states: "
+                + "; ".join(f"{i.text(4)} (NMSE {i.errors_text()})" for i in identities)
+            )
+            ae, summary["identities"] = _identities_in_model(ae, identities, weighted, de, judge)
+            written = [t for t, item in summary["identities"].items() if item["in_model"]]
+            if written:
+                summary.update(_equations_summary(ae))
+                observer.message(
+                    "AE equations written as those relations in the model's own lines (the "
+                    "closed model simulates the training recordings no worse): "
+                    + ", ".join(written)
                 )
         if test:
             from jaxdmd.rollout import algebraic_r2
@@ -1059,6 +1067,47 @@ def discover(
         with contextlib.suppress(workers.WorkerError):  # if it failed, save() makes it here
             result = dataclasses.replace(result, physical=physical.result())
     return result
+
+
+def _identities_in_model(
+    ae: Equations,
+    identities: Sequence[Identity],
+    state: SearchState,
+    de: Equations,
+    judge: Judge,
+) -> tuple[Equations, dict[str, dict[str, Any]]]:
+    """Each relation among the measured algebraic variables written into the model in place of
+    its variable's line (:func:`jaxdmd.identities.with_identities`), one at a time in the
+    targets' order, and kept where the closed model then simulates the training recordings no
+    worse (``judge``). Returns the equations and, per relation, its report with ``in_model``."""
+    report: dict[str, dict[str, Any]] = {}
+    kept: list[Identity] = []
+    model = ae
+    for identity in identities:
+        item = report[identity.target] = identity.as_dict()
+        written = with_identities(ae, [*kept, identity], state)
+        if written is None:
+            item["in_model"] = False
+            item["kept"] = (
+                "it reads a variable written as a relation, or the equations with it exceed "
+                "a skeleton's size limits"
+            )
+            continue
+        model = judge.better(model, written, item, de=de)
+        item["in_model"] = model is written
+        if item["in_model"]:
+            kept.append(identity)
+    return model, report
+
+
+def _equations_summary(eq: Equations) -> dict[str, object]:
+    """The keys of :func:`_loop_summary` that follow the equations (after a change to them)."""
+    return {
+        "equations": eq.readable(),
+        "source": eq.source,
+        "params": list(eq.params),
+        "nmse": dict(zip(eq.contract.targets, eq.losses, strict=True)),
+    }
 
 
 def _holding(joint: dict[str, Any] | None, same_structure: bool) -> dict[str, Any] | None:

@@ -84,16 +84,18 @@ def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
         "On the measurements, each variable below is a sum of products of the other algebraic "
         "variables (the simplest such sum within 25 % of the best held-out fit), and that "
         "relation fits it on held-out recordings at least ten times better than its line in "
-        "the states above. The model keeps the line in the states (the closed model needs "
-        "nothing measured); the relation shows what that line may be missing or standing in "
-        "for.",
+        "the states. Where the closed model then simulates the training recordings no "
+        "worse, the relation is written into the model in place of that line, its factors "
+        "the model's own lines of those variables (nothing measured): the equations above "
+        "then show it.",
         "",
-        "| relation | held-out NMSE | the line's |",
-        "|---|---|---|",
+        "| relation | held-out NMSE | the line's | in the model |",
+        "|---|---|---|---|",
     ]
     for item in identities.values():
         errors = (nmse_text(item["held_out_nmse"]), nmse_text(item["line_nmse"]))
-        lines.append(f"| {item['text']} | {errors[0]} | {errors[1]} |")
+        used = "yes" if item.get("in_model") else "no"
+        lines.append(f"| {item['text']} | {errors[0]} | {errors[1]} | {used} |")
     return lines
 
 

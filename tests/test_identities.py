@@ -12,7 +12,7 @@ import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import lines as ln
 from jaxdmd import search
 from jaxdmd.data import Dataset
-from jaxdmd.identities import measured_identities
+from jaxdmd.identities import Identity, measured_identities, with_identities
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.select import _assemble
 
@@ -73,7 +73,7 @@ def test_a_power_that_is_a_product_of_the_other_channels_is_found_with_its_losse
     from jaxdmd.report import identities_section
 
     rows = [r for r in identities_section({power.target: power.as_dict()}) if r.startswith("| P")]
-    assert rows == [f"| {power.text()} | < 1e-12 | {power.line_nmse:.2g} |"]
+    assert rows == [f"| {power.text()} | < 1e-12 | {power.line_nmse:.2g} | no |"]
 
 
 def test_no_relation_where_the_channels_are_unrelated():
@@ -97,3 +97,42 @@ def test_no_relation_where_the_channels_are_unrelated():
         },
     )
     assert "P" not in {i.target for i in measured_identities(state, equations)}
+
+
+def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_better():
+    """The relation found above, written in place of P's stand-in line: the skeleton computes P
+    from y's and w's outputs by name, with the relation's coefficients as parameters, so that
+    P in the states (inlined) reads nothing measured, and that line's NMSE on the problem is far
+    below the stand-in's; the other lines and their parameters are kept. (x clean here: the
+    relation's line is as good as the lines it reads.) A relation that reads a variable
+    written as a relation is refused."""
+    recordings = _with_power(tracking(3, 0.0, 20.0, 1001, RATES))
+    state, equations = _state_and_lines(
+        recordings,
+        {
+            "y": "p[0] * x + p[1] * theta",
+            "w": "p[0] + p[1] * jnp.cos(theta)",
+            "P": "p[0] + p[1] * x + p[2] * theta",
+        },
+    )
+    (power,) = [i for i in measured_identities(state, equations) if i.target == "P"]
+    written = with_identities(equations, [power], state)
+    assert written is not None
+    targets = list(equations.contract.targets)
+    j = targets.index("P")
+    assert written.params[-len(power.coefficients) :] == power.coefficients
+    assert "P_ = p[" in written.source and "y_ * w_" in written.source, written.source
+    lines, maps = ln.split_lines(written.source)
+    assert lines[j].variables() - {"jnp"} <= {"x", "theta"}  # nothing measured
+    assert written.losses[j] < equations.losses[j] / 10, (written.losses, equations.losses)
+    old_lines, old_maps = ln.split_lines(equations.source)
+    for k, target in enumerate(targets):
+        if target != "P":  # the other lines and their parameters as they were
+            assert lines[k].text == old_lines[k].text
+            assert [written.params[i] for i in maps[k]] == [
+                equations.params[i] for i in old_maps[k]
+            ]
+            assert written.losses[k] == equations.losses[k]
+    # y written as a relation that P's relation reads: refused
+    circular = Identity("y", (("w", "w"),), (1.0,), 0.0, 1.0)
+    assert with_identities(equations, [circular, power], state) is None
