@@ -153,6 +153,33 @@ def split_lines(source: str) -> tuple[tuple[Line, ...], tuple[tuple[int, ...], .
     return tuple(lines), tuple(mappings)
 
 
+def written_by_name(source: str) -> dict[str, ast.expr] | None:
+    """Each output's own expression in a skeleton whose every statement assigns one name (the
+    returned outputs read by name in later statements, as a relation among them reads the
+    others: ``P_e_ = p[15] * i_q_ * v_q_``), not inlined; None where any other statement or an
+    intermediate name that is not returned appears (then only :func:`split_lines` can say
+    what an output is)."""
+    fn = function_def(source)
+    assigned: dict[str, ast.expr] = {}
+    returned: list[str] = []
+    for stmt in fn.body:
+        if (
+            isinstance(stmt, ast.Assign) and len(stmt.targets) == 1
+            and isinstance(stmt.targets[0], ast.Name)
+        ):  # fmt: skip
+            assigned[stmt.targets[0].id] = stmt.value
+        elif isinstance(stmt, ast.Return) and stmt.value is not None:
+            values = stmt.value.elts if isinstance(stmt.value, ast.Tuple) else [stmt.value]
+            if not all(isinstance(v, ast.Name) for v in values):
+                return None
+            returned = [v.id for v in values]  # type: ignore[attr-defined]
+        elif not (isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant)):
+            return None
+    if set(assigned) != set(returned) or len(returned) != len(assigned):
+        return None
+    return {name: assigned[name] for name in returned}
+
+
 def assemble(
     name: str,
     arguments: Sequence[str],
@@ -244,6 +271,19 @@ def renumbered(line: Line) -> Line:
 def inlined(expr: ast.expr, env: dict[str, ast.expr]) -> ast.expr:
     """``expr`` with each name of ``env`` replaced by (a copy of) its expression."""
     return ast.fix_missing_locations(_Inline(env).visit(copy_tree(expr)))
+
+
+class _Rename(ast.NodeTransformer):
+    def __init__(self, names: dict[str, str]) -> None:
+        self.names = names
+
+    def visit_Name(self, node: ast.Name) -> ast.Name:
+        return ast.Name(self.names.get(node.id, node.id), node.ctx)
+
+
+def renamed(expr: ast.expr, names: dict[str, str]) -> ast.expr:
+    """(A copy of) ``expr`` with each variable of ``names`` renamed to its value."""
+    return ast.fix_missing_locations(_Rename(names).visit(copy_tree(expr)))
 
 
 def substitute_params(expr: ast.expr, params: Sequence[float], digits: int = 6) -> str:

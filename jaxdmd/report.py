@@ -138,7 +138,9 @@ def equation_sections(*equations: Equations | None) -> list[str]:
         de = eq.contract.loop == "DE"
         title = "State equations (DE loop)" if de else "Algebraic equations (AE loop)"
         lines += [f"## {title}", ""]
-        for target, rhs in zip(eq.contract.targets, eq.readable().values(), strict=True):
+        for target, rhs in zip(
+            eq.contract.targets, eq.readable(by_name=True).values(), strict=True
+        ):
             lines.append(f"    {pretty.equation(target, rhs, dt=de)}")
             latex.append(pretty.equation(target, rhs, "latex", dt=de).replace(" = ", " &= ", 1))
         lines.append("")
@@ -147,7 +149,7 @@ def equation_sections(*equations: Equations | None) -> list[str]:
         lines += [f"{row} \\\\" for row in latex[:-1]] + [latex[-1], "\\end{aligned}", "$$", ""]
         lines += ["## As Python (the lines of `model.py`, fitted values written in)", ""]
         for eq in found:
-            lines += [f"    {k} = {v}" for k, v in eq.readable().items()]
+            lines += [f"    {k} = {v}" for k, v in eq.readable(by_name=True).items()]
         lines.append("")
     return lines[:-1] if lines else lines
 
@@ -587,7 +589,7 @@ def report_markdown(d: Diagnosis) -> str:
         out += [f"{_COLUMNS[name]}:", "", "```"]
         out += [
             pretty.equation(t, rhs)
-            for t, rhs in zip(eq.contract.targets, eq.readable().values(), strict=True)
+            for t, rhs in zip(eq.contract.targets, eq.readable(by_name=True).values(), strict=True)
         ]
         out += ["```", ""]
     if d.extended is not None:

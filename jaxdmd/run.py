@@ -319,7 +319,7 @@ def run_discover(args: argparse.Namespace) -> int:
         for eq in (result.de, result.ae):
             if eq is None:
                 continue
-            rhs = eq.readable().values()
+            rhs = eq.readable(by_name=True).values()
             for target, v in zip(eq.contract.targets, rhs, strict=True):
                 text = pretty.equation(target, v, dt=eq.contract.loop == "DE")
                 progress.print(f"  {text}", markup=False)

@@ -515,14 +515,25 @@ class Equations:
     losses: tuple[float, ...]
     score: float
 
-    def readable(self) -> dict[str, str]:
-        """Each target's equation with the fitted parameters written in."""
+    def readable(self, *, by_name: bool = False) -> dict[str, str]:
+        """Each target's equation with the fitted parameters written in: in the states, inputs
+        and boundary (every output read by another inlined), or, with ``by_name``, as the
+        skeleton writes it, an output that reads others reading them by their variables' names
+        (a power written as a relation among the currents and voltages: ``P_e = 1.0 i_q v_q +
+        ...``; as every line is where the skeleton has statements of other kinds)."""
+        lhs = [f"d{t}/dt" if self.contract.loop == "DE" else t for t in self.contract.targets]
+        own = ln.written_by_name(self.source) if by_name else None
+        if own is not None:
+            names = dict(zip(self.contract.outputs, self.contract.targets, strict=True))
+            return {
+                k: ln.substitute_params(ln.renamed(own[o], names), self.params)
+                for k, o in zip(lhs, self.contract.outputs, strict=True)
+            }
         lines, mappings = ln.split_lines(self.source)
         out = {}
-        for target, line, mapping in zip(self.contract.targets, lines, mappings, strict=True):
+        for key, line, mapping in zip(lhs, lines, mappings, strict=True):
             params = [self.params[i] for i in mapping]
-            lhs = f"d{target}/dt" if self.contract.loop == "DE" else target
-            out[lhs] = ln.substitute_params(line.expr, params)
+            out[key] = ln.substitute_params(line.expr, params)
         return out
 
     def skeleton(self) -> Skeleton:

@@ -507,17 +507,8 @@ def _complexity(line: ln.Line, states: set[str]) -> tuple[int, int, int]:
 # the selection
 
 
-class _Rename(ast.NodeTransformer):
-    def __init__(self, old: str, new: str) -> None:
-        self.old, self.new = old, new
-
-    def visit_Name(self, node: ast.Name) -> ast.Name:
-        return ast.Name(self.new, node.ctx) if node.id == self.old else node
-
-
 def _renamed(line: ln.Line, old: str, new: str) -> ln.Line:
-    expr = _Rename(old, new).visit(ln.copy_tree(line.expr))
-    return ln.Line(ast.fix_missing_locations(expr), line.n_params)
+    return ln.Line(ln.renamed(line.expr, {old: new}), line.n_params)
 
 
 def _archive_lines(state: SearchState) -> list[tuple[tuple[float, ...], tuple[ln.Line, ...]]]:

@@ -124,6 +124,10 @@ def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_be
     assert "P_ = p[" in written.source and "y_ * w_" in written.source, written.source
     lines, maps = ln.split_lines(written.source)
     assert lines[j].variables() - {"jnp"} <= {"x", "theta"}  # nothing measured
+    # shown as the relation it is (equations.md, the terminal), in the states in summary.json
+    shown, inlined = written.readable(by_name=True)["P"], written.readable()["P"]
+    assert "y * w" in shown and "x" not in shown and "y" not in inlined, (shown, inlined)
+    assert equations.readable(by_name=True) == equations.readable()
     assert written.losses[j] < equations.losses[j] / 10, (written.losses, equations.losses)
     old_lines, old_maps = ln.split_lines(equations.source)
     for k, target in enumerate(targets):
