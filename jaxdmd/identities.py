@@ -42,7 +42,7 @@ from jaxdmd.search import (
 from jaxdmd.select import _folds
 from jaxdmd.skeleton import SkeletonError
 
-__all__ = ["Identity", "measured_identities", "nmse_text", "with_identities"]
+__all__ = ["Identity", "fitted_nmse", "measured_identities", "nmse_text", "with_identities"]
 
 # the most products (and a constant) in a relation: a power is four (two products and the
 # armature losses' two squares)
@@ -240,14 +240,24 @@ def with_identities(
         skeleton = _compile(source, contract)
     except SkeletonError:
         return None
-    problem = state.problem
-    data = {n: jnp.asarray(problem.variables[n]) for n in skeleton.arguments}
-    predicted = np.asarray(skeleton(data, jnp.asarray(params)))
-    values = np.asarray(problem.targets, dtype=float)
+    out = dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
+    fitted = fitted_nmse(out, state)
     losses = list(equations.losses)
     for identity in identities:
         j = targets.index(identity.target)
-        losses[j] = float(nmse(predicted[j], values[j], sample_weights(problem, j))[0])
-    return dataclasses.replace(
-        equations, source=skeleton.source, params=tuple(params), losses=tuple(losses)
-    )
+        losses[j] = fitted[j]
+    return dataclasses.replace(out, losses=tuple(losses))
+
+
+def fitted_nmse(equations: Equations, state: SearchState) -> list[float]:
+    """Each line's NMSE on ``state``'s problem with ``equations``' parameters as they are (the
+    model's, after whatever refits; the problem's sample weights), in the targets' order."""
+    skeleton = equations.skeleton()
+    problem = state.problem
+    data = {n: jnp.asarray(problem.variables[n]) for n in skeleton.arguments}
+    predicted = np.asarray(skeleton(data, jnp.asarray(equations.params)))
+    values = np.asarray(problem.targets, dtype=float)
+    return [
+        float(nmse(predicted[j], values[j], sample_weights(problem, j))[0])
+        for j in range(len(values))
+    ]

@@ -40,7 +40,12 @@ import numpy as np
 from jaxdmd import search, workers
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import StateEstimate, without_covariance
-from jaxdmd.identities import Identity, measured_identities, with_identities
+from jaxdmd.identities import (
+    Identity,
+    fitted_nmse,
+    measured_identities,
+    with_identities,
+)
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.prompts import Contract, Variable
 from jaxdmd.proposers import Proposer
@@ -1078,11 +1083,17 @@ def _identities_in_model(
 ) -> tuple[Equations, dict[str, dict[str, Any]]]:
     """Each relation among the measured algebraic variables written into the model in place of
     its variable's line (:func:`jaxdmd.identities.with_identities`), one at a time in the
-    targets' order, and kept where the closed model then simulates the training recordings no
-    worse (``judge``). Returns the equations and, per relation, its report with ``in_model``."""
+    targets' order, where, written in the model's lines, it fits its variable on the AE problem
+    better than the variable's own line does, both with the model's parameters as they are
+    (:func:`jaxdmd.identities.fitted_nmse`: a relation exact on the measurements is only as
+    good, in the model, as the lines it reads), and kept where the closed model then simulates
+    the training recordings no worse (``judge``). Returns the equations and, per relation, its
+    report with ``in_model``."""
     report: dict[str, dict[str, Any]] = {}
     kept: list[Identity] = []
     model = ae
+    own = fitted_nmse(ae, state)
+    targets = list(ae.contract.targets)
     for identity in identities:
         item = report[identity.target] = identity.as_dict()
         written = with_identities(ae, [*kept, identity], state)
@@ -1091,6 +1102,15 @@ def _identities_in_model(
             item["kept"] = (
                 "it reads a variable written as a relation, or the equations with it exceed "
                 "a skeleton's size limits"
+            )
+            continue
+        j = targets.index(identity.target)
+        item["model_fit_nmse"] = {"line": own[j], "relation": written.losses[j]}
+        if not written.losses[j] < own[j]:
+            item["in_model"] = False
+            item["kept"] = (
+                "written in the model's lines it fits its variable no better than the "
+                "variable's own line"
             )
             continue
         model = judge.better(model, written, item, de=de)

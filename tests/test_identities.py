@@ -12,7 +12,12 @@ import jaxdmd  # noqa: F401  (float64)
 from jaxdmd import lines as ln
 from jaxdmd import search
 from jaxdmd.data import Dataset
-from jaxdmd.identities import Identity, measured_identities, with_identities
+from jaxdmd.identities import (
+    Identity,
+    fitted_nmse,
+    measured_identities,
+    with_identities,
+)
 from jaxdmd.problems import ae_problem, de_problem
 from jaxdmd.select import _assemble
 
@@ -129,6 +134,9 @@ def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_be
     assert "y * w" in shown and "x" not in shown and "y" not in inlined, (shown, inlined)
     assert equations.readable(by_name=True) == equations.readable()
     assert written.losses[j] < equations.losses[j] / 10, (written.losses, equations.losses)
+    # the model's fits as they are: the equations' losses (both fitted on this problem)
+    assert np.allclose(fitted_nmse(equations, state), equations.losses, rtol=1e-6, atol=1e-20)
+    assert np.allclose(fitted_nmse(written, state), written.losses, rtol=1e-6, atol=1e-20)
     old_lines, old_maps = ln.split_lines(equations.source)
     for k, target in enumerate(targets):
         if target != "P":  # the other lines and their parameters as they were
@@ -140,3 +148,24 @@ def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_be
     # y written as a relation that P's relation reads: refused
     circular = Identity("y", (("w", "w"),), (1.0,), 0.0, 1.0)
     assert with_identities(equations, [circular, power], state) is None
+
+
+def test_a_relation_in_stand_in_lines_fits_worse_than_the_variables_own_line():
+    """The same exact relation P = y w + 0.05 y^2, but y's line in the states is a stand-in
+    (``p[0] * theta``: it misses x). On the measurements the relation is still found, but
+    written in the model's lines it passes through y's stand-in and fits P far worse than P's
+    own line: that is what keeps it out of the model."""
+    recordings = _with_power(tracking(3, 0.0, 20.0, 1001, RATES))
+    state, equations = _state_and_lines(
+        recordings,
+        {
+            "y": "p[0] * theta",
+            "w": "p[0] + p[1] * jnp.cos(theta)",
+            "P": "p[0] + p[1] * x + p[2] * theta",
+        },
+    )
+    (power,) = [i for i in measured_identities(state, equations) if i.target == "P"]
+    written = with_identities(equations, [power], state)
+    j = list(equations.contract.targets).index("P")
+    assert written is not None
+    assert written.losses[j] > 100 * fitted_nmse(equations, state)[j]
