@@ -104,6 +104,19 @@ def test_no_relation_where_the_channels_are_unrelated():
     assert "P" not in {i.target for i in measured_identities(state, equations)}
 
 
+def _power_written(y_line: str):
+    """Clean recordings (x without noise), y's line ``y_line``, w's exact, P's a stand-in: the
+    state, the equations, P's relation found on the measurements, and the equations with it
+    written in (:func:`with_identities`)."""
+    recordings = _with_power(tracking(3, 0.0, 20.0, 1001, RATES))
+    state, equations = _state_and_lines(
+        recordings,
+        {"y": y_line, "w": "p[0] + p[1] * jnp.cos(theta)", "P": "p[0] + p[1] * x + p[2] * theta"},
+    )
+    (power,) = [i for i in measured_identities(state, equations) if i.target == "P"]
+    return state, equations, power, with_identities(equations, [power], state)
+
+
 def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_better():
     """The relation found above, written in place of P's stand-in line: the skeleton computes P
     from y's and w's outputs by name, with the relation's coefficients as parameters, so that
@@ -111,17 +124,7 @@ def test_a_relation_written_into_the_model_reads_the_other_lines_and_fits_far_be
     below the stand-in's; the other lines and their parameters are kept. (x clean here: the
     relation's line is as good as the lines it reads.) A relation that reads a variable
     written as a relation is refused."""
-    recordings = _with_power(tracking(3, 0.0, 20.0, 1001, RATES))
-    state, equations = _state_and_lines(
-        recordings,
-        {
-            "y": "p[0] * x + p[1] * theta",
-            "w": "p[0] + p[1] * jnp.cos(theta)",
-            "P": "p[0] + p[1] * x + p[2] * theta",
-        },
-    )
-    (power,) = [i for i in measured_identities(state, equations) if i.target == "P"]
-    written = with_identities(equations, [power], state)
+    state, equations, power, written = _power_written("p[0] * x + p[1] * theta")
     assert written is not None
     targets = list(equations.contract.targets)
     j = targets.index("P")
@@ -155,17 +158,7 @@ def test_a_relation_in_stand_in_lines_fits_worse_than_the_variables_own_line():
     (``p[0] * theta``: it misses x). On the measurements the relation is still found, but
     written in the model's lines it passes through y's stand-in and fits P far worse than P's
     own line: that is what keeps it out of the model."""
-    recordings = _with_power(tracking(3, 0.0, 20.0, 1001, RATES))
-    state, equations = _state_and_lines(
-        recordings,
-        {
-            "y": "p[0] * theta",
-            "w": "p[0] + p[1] * jnp.cos(theta)",
-            "P": "p[0] + p[1] * x + p[2] * theta",
-        },
-    )
-    (power,) = [i for i in measured_identities(state, equations) if i.target == "P"]
-    written = with_identities(equations, [power], state)
+    state, equations, _, written = _power_written("p[0] * theta")
     j = list(equations.contract.targets).index("P")
     assert written is not None
     assert written.losses[j] > 100 * fitted_nmse(equations, state)[j]
