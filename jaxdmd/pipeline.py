@@ -37,7 +37,7 @@ from typing import Any, Literal, Protocol
 import jax
 import numpy as np
 
-from jaxdmd import search, workers
+from jaxdmd import search, ties, workers
 from jaxdmd.data import Dataset
 from jaxdmd.estimate import StateEstimate, without_covariance
 from jaxdmd.identities import (
@@ -1106,7 +1106,7 @@ def _identities_in_model(
             continue
         j = targets.index(identity.target)
         item["model_fit_nmse"] = {"line": own[j], "relation": written.losses[j]}
-        if not written.losses[j] < own[j]:
+        if not ties.settled(written.losses[j]) < ties.settled(own[j]):  # a tie: the line
             item["in_model"] = False
             item["kept"] = (
                 "written in the model's lines it fits its variable no better than the "
