@@ -19,7 +19,6 @@ better than the variable's line in the states does. Nothing here knows what any 
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import itertools
 from collections.abc import Sequence
@@ -40,7 +39,7 @@ from jaxdmd.search import (
     sample_weights,
 )
 from jaxdmd.select import _folds
-from jaxdmd.skeleton import SkeletonError
+from jaxdmd.skeleton import Skeleton, SkeletonError
 
 __all__ = ["Identity", "fitted_nmse", "measured_identities", "nmse_text", "with_identities"]
 
@@ -211,14 +210,9 @@ def with_identities(
     if any(v in written for i in identities for f in i.factors if f is not None for v in f):
         return None
     lines, maps = ln.split_lines(equations.source)
-    body: list[str] = []
-    params: list[float] = []
     kept = [k for k, t in enumerate(targets) if t not in written]
-    for k in kept:
-        renumber = ln._Renumber(len(params))
-        expr = ast.fix_missing_locations(renumber.visit(ln.copy_tree(lines[k].expr)))
-        body.append(f"    {outputs[k]} = {ast.unparse(expr)}")
-        params += [float(equations.params[i]) for i in maps[k]]
+    params = [float(equations.params[i]) for k in kept for i in maps[k]]
+    relations: list[str] = []
     for identity in identities:
         terms = []
         for f, c in zip(identity.factors, identity.coefficients, strict=True):
@@ -229,33 +223,35 @@ def with_identities(
             else:
                 a, b = (outputs[targets.index(v)] for v in f)
                 terms.append(f"p[{n}] * {a} * {b}")
-        body.append(f"    {outputs[targets.index(identity.target)]} = {' + '.join(terms)}")
-    used = set().union(*(lines[k].variables() for k in kept))
-    args = [a for a in contract.arguments if a in used]
-    source = "\n".join(
-        [f"def {contract.function_name}({', '.join([*args, 'p'])}):", *body,
-         f"    return {', '.join(outputs)}"]
-    ) + "\n"  # fmt: skip
+        relations.append(f"{outputs[targets.index(identity.target)]} = {' + '.join(terms)}")
+    source = ln.assemble(
+        contract.function_name, contract.arguments, [lines[k] for k in kept],
+        [outputs[k] for k in kept], after=relations, returns=outputs,
+    )  # fmt: skip
     try:
         skeleton = _compile(source, contract)
     except SkeletonError:
         return None
-    out = dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
-    fitted = fitted_nmse(out, state)
+    fitted = _line_nmse(skeleton, params, state)
     losses = list(equations.losses)
     for identity in identities:
         j = targets.index(identity.target)
         losses[j] = fitted[j]
-    return dataclasses.replace(out, losses=tuple(losses))
+    return dataclasses.replace(
+        equations, source=skeleton.source, params=tuple(params), losses=tuple(losses)
+    )
 
 
 def fitted_nmse(equations: Equations, state: SearchState) -> list[float]:
     """Each line's NMSE on ``state``'s problem with ``equations``' parameters as they are (the
     model's, after whatever refits; the problem's sample weights), in the targets' order."""
-    skeleton = equations.skeleton()
+    return _line_nmse(equations.skeleton(), equations.params, state)
+
+
+def _line_nmse(skeleton: Skeleton, params: Sequence[float], state: SearchState) -> list[float]:
     problem = state.problem
     data = {n: jnp.asarray(problem.variables[n]) for n in skeleton.arguments}
-    predicted = np.asarray(skeleton(data, jnp.asarray(equations.params)))
+    predicted = np.asarray(skeleton(data, jnp.asarray(params)))
     values = np.asarray(problem.targets, dtype=float)
     return [
         float(nmse(predicted[j], values[j], sample_weights(problem, j))[0])

@@ -185,8 +185,13 @@ def assemble(
     arguments: Sequence[str],
     lines: Sequence[Line],
     outputs: Sequence[str],
+    *,
+    after: Sequence[str] = (),
+    returns: Sequence[str] | None = None,
 ) -> str:
-    """Assemble a skeleton source from lines: one assignment per output, then the return."""
+    """Assemble a skeleton source from lines: one assignment per output, then the statements
+    ``after`` (each one line of code that may read those outputs by name, its parameters
+    numbered after the lines'), then the return of ``returns`` (default: ``outputs``)."""
     offset = 0
     body: list[str] = []
     for out, line in zip(outputs, lines, strict=True):
@@ -198,7 +203,9 @@ def assemble(
     used = set().union(*(line.variables() for line in lines)) if lines else set()
     args = [a for a in arguments if a in used]
     header = f"def {name}({', '.join([*args, 'p'])}):"
-    return "\n".join([header, *body, f"    return {', '.join(outputs)}"]) + "\n"
+    body += [f"    {statement}" for statement in after]
+    returned = outputs if returns is None else returns
+    return "\n".join([header, *body, f"    return {', '.join(returned)}"]) + "\n"
 
 
 def summands(node: ast.expr) -> list[ast.expr]:

@@ -1045,9 +1045,9 @@ def discover(
             if written:
                 summary.update(_equations_summary(ae))
                 observer.message(
-                    "AE equations written as those relations in the model's own lines (the "
-                    "closed model simulates the training recordings no worse): "
-                    + ", ".join(written)
+                    "AE equations written as those relations in the model's own lines (there "
+                    "they fit their variable better than its line, and the closed model "
+                    "simulates the training recordings no worse): " + ", ".join(written)
                 )
         if test:
             from jaxdmd.rollout import algebraic_r2

@@ -84,10 +84,10 @@ def identities_section(identities: Mapping[str, Any] | None) -> list[str]:
         "On the measurements, each variable below is a sum of products of the other algebraic "
         "variables (the simplest such sum within 25 % of the best held-out fit), and that "
         "relation fits it on held-out recordings at least ten times better than its line in "
-        "the states. Where the closed model then simulates the training recordings no "
-        "worse, the relation is written into the model in place of that line, its factors "
-        "the model's own lines of those variables (nothing measured): the equations above "
-        "then show it.",
+        "the states. Where, written in the model's own lines of those variables (nothing "
+        "measured), it also fits its variable better than that line does, and the closed "
+        "model then simulates the training recordings no worse, the relation is written into "
+        "the model in place of that line: the equations above then show it.",
         "",
         "| relation | held-out NMSE | the line's | in the model |",
         "|---|---|---|---|",
