@@ -177,3 +177,37 @@ def test_a_users_building_block_joins_the_second_tier():
     result = jaxdmd.discover(train, (), EXACT, proposer, key=jax.random.key(0))
     terms = _terms(result.de.readable()["dy/dt"])
     assert terms == pytest.approx({"y": -1.0, "u / (1 + u * u)": 0.8}, rel=1e-6)
+
+
+def _noisy_proposer(target, x, v) -> OfflineProposer:
+    proposer = OfflineProposer({"x": x, "v": v}, target[None], groups=np.arange(len(x)) % 3)
+    proposer.tiers((Variable("x", "state", ""), Variable("v", "state", "")))
+    return proposer
+
+
+def test_a_series_is_condensed_into_the_form_it_approximates():
+    """With noise, x and x^2, the start of x exp(x / 2)'s series, pass the admission bar
+    before the second tier is offered, and then the form alone explains too little more to be
+    admitted. Simplifying replaces the two powers by the rated form, its rate fitted, and
+    keeps the other term."""
+    rng = np.random.default_rng(0)
+    x, v = rng.uniform(-1.5, 1.5, 3000), rng.uniform(-1, 1, 3000)
+    target = -5 * x * np.exp(0.5 * x) - v
+    target = target + 0.01 * target.std() * rng.standard_normal(3000)
+    proposer = _noisy_proposer(target, x, v)
+    condensed = proposer._simplify(0, ["x", "v", "x * x"])
+    assert condensed[0] == "v" and len(condensed) == 2
+    (rate,) = [float(m) for m in re.findall(r"^x \* jnp\.exp\((\S+) \* x\)$", condensed[1])]
+    assert rate == pytest.approx(0.5, rel=0.02)
+    assert proposer.held_out(0, condensed) < proposer.held_out(0, ["x", "v", "x * x"])
+
+
+def test_a_true_polynomial_is_not_condensed():
+    """d v/dt = -x - 0.5 x^3 - v with noise: no rated form fits the two powers as well, so
+    they stay."""
+    rng = np.random.default_rng(1)
+    x, v = rng.uniform(-1.5, 1.5, 3000), rng.uniform(-1, 1, 3000)
+    target = -x - 0.5 * x**3 - v
+    target = target + 0.01 * target.std() * rng.standard_normal(3000)
+    proposer = _noisy_proposer(target, x, v)
+    assert proposer._simplify(0, ["x", "v", "x * x * x"]) == ["x", "v", "x * x * x"]

@@ -165,6 +165,17 @@ def _strip(node: ast.expr) -> str | None:
     return " * ".join(wrap(ast.unparse(f)) for f in rest)
 
 
+def _power_of(term: str) -> str | None:
+    """The variable ``term`` is a power of (``x``, ``x * x``, ``x * x * x``), else None."""
+    factors = _factors(ast.parse(term, mode="eval").body)
+    names = {f.id for f in factors if isinstance(f, ast.Name)}
+    return (
+        names.pop()
+        if len(names) == 1 and len(factors) == sum(isinstance(f, ast.Name) for f in factors)
+        else None
+    )
+
+
 def wrap(text: str) -> str:
     """``text`` in parentheses where it is a sum or difference (a factor of a product)."""
     tree = ast.parse(text, mode="eval").body
@@ -706,8 +717,9 @@ class OfflineProposer:
         return terms
 
     def _simplify(self, j, terms) -> list[str]:
-        """Backward elimination: drop terms whose removal costs less than the admission bar."""
-        terms = list(terms)
+        """Backward elimination: drop terms whose removal costs less than the admission bar;
+        first, :meth:`_condense` the powers of one variable into one rated form of it."""
+        terms = self._condense(j, terms)
         while len(terms) > 1:
             base = self.held_out(j, terms)
             losses = [self.held_out(j, terms[:i] + terms[i + 1 :]) for i in range(len(terms))]
@@ -715,6 +727,40 @@ class OfflineProposer:
             if losses[i] - base > max(self.config.min_relative_gain * base, 1e-5):
                 break
             terms.pop(i)
+        return terms
+
+    def _condense(self, j: int, terms: Sequence[str]) -> list[str]:
+        """Powers of one variable (``x``, ``x * x``, ...: a truncated series) replaced by one
+        rated form of it (``x * jnp.exp(r * x)``, ``jnp.tanh(r * x)``, ...) where that fits
+        equation j no worse held out: fewer terms, and the form extrapolates as the data's
+        shape does, not as its Taylor polynomial. The first tier's powers pass the admission
+        bar before the second tier is offered; once they are in, the form alone explains too
+        little more to be admitted, so without this move a series would stay. For each form
+        the grid's rate that explains most of the rest's residual is refined; the best form
+        wins, ties to the current terms."""
+        terms = list(terms)
+        for name in sorted({r.variable for r in self._rated.values() if r.form in RATE_FORMS}):
+            powers = [t for t in terms if _power_of(t) == name]
+            if len(powers) < 2:
+                continue
+            rest = [t for t in terms if t not in powers]
+            scale = float(np.max(np.abs(self.data[name])))
+            best, error = terms, settled(self.held_out(j, terms))
+            for form in RATE_FORMS:
+                grid = []
+                for r in _RATE_GRID:
+                    item = Rated(form, name, float(f"{r / scale:.3g}"))
+                    self._rated.setdefault(item.term, item)
+                    grid.append(item.term)
+                share = self.explained(j, rest, grid)
+                if share.max() <= NOTHING:
+                    continue
+                candidate = [*rest, self._refine(j, rest, grid[ties.argmax(share)])]
+                if settled(self.held_out(j, candidate)) < error or (
+                    best is terms and settled(self.held_out(j, candidate)) == error
+                ):
+                    best, error = candidate, settled(self.held_out(j, candidate))
+            terms = best
         return terms
 
     def _subset(self, rng, j: int, variables: Sequence[Variable]) -> list[str]:
