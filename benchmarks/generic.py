@@ -187,6 +187,13 @@ def _sympy_terms(text: str, names: Sequence[str]) -> frozenset[str]:
 
     symbols = {n: sp.Symbol(n) for n in names}
     expr = sp.sympify(text.replace("jnp.", "").replace("np.", ""), locals=symbols)
+
+    def rounded(e: sp.Expr) -> sp.Expr:
+        return e.xreplace({f: sp.Float(float(f"{float(f):.2g}")) for f in e.atoms(sp.Float)})
+
+    # numbers inside functions first, so that an odd function's sign comes out of it
+    # (tanh(-1.98 u) is -tanh(2.0 u), the same term as tanh(2 u))
+    expr = expr.xreplace({f: rounded(f) for f in expr.atoms(sp.Function)})
     out = set()
     terms = [t.as_coeff_Mul() for t in sp.Add.make_args(sp.expand(expr))]
     largest = max((abs(float(c)) for c, _ in terms), default=0.0)
@@ -196,9 +203,9 @@ def _sympy_terms(text: str, names: Sequence[str]) -> frozenset[str]:
         if rest == 1:
             out.add("1")
             continue
-        floats = {f: sp.Float(float(f"{float(f):.2g}")) for f in rest.atoms(sp.Float)}
-        rest = rest.xreplace(floats)
-        rest = rest.xreplace({f: sp.Integer(int(f)) for f in rest.atoms(sp.Float) if f == int(f)})
+        rest = rounded(rest)
+        whole = {f: sp.Integer(int(f)) for f in rest.atoms(sp.Float) if float(f).is_integer()}
+        rest = rest.xreplace(whole)
         out.add(str(rest))
     return frozenset(out)
 
