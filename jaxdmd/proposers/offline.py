@@ -15,11 +15,13 @@ over whatever variables the contract names:
 - products of two such blocks, and the constant.
 
 Operators (one to three per sample, drawn at random): add a term, grow an equation by greedy
-forward selection, remove the least useful term, swap a term, prune terms whose fitted effect is
-negligible, and cross over equations between two parents (each equation from the parent with
-the lower loss on it). New terms are drawn from a softmax over how much of the equation's
-residual each explains once the terms already present are projected out (with some uniform
-exploration), on a subsample of the data the proposer was built with. A term is admitted, and
+forward selection, remove the least useful term, swap a term, simplify (condense powers of one
+variable into one rate form of it where that fits no worse, then backward elimination), take
+the best small subset of blocks, prune terms whose fitted effect is negligible, and cross over
+equations between two parents (each equation from the parent with the lower loss on it). New
+terms are drawn from a softmax over how much of the equation's residual each explains once the
+terms already present are projected out (with some uniform exploration), on a subsample of the
+data the proposer was built with. A term is admitted, and
 backward elimination keeps it, only if it lowers the equation's leave-one-recording-out error
 (when the data hold several recordings) by a few per cent: a term that only fits the noise of one
 recording does not help predict another. Variable requests rank the catalog variables outside
