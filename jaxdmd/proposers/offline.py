@@ -739,7 +739,7 @@ class OfflineProposer:
         bar before the second tier is offered; once they are in, the form alone explains too
         little more to be admitted, so without this move a series would stay. For each form
         the grid's rate that explains most of the rest's residual is refined; the best form
-        wins, ties to the current terms."""
+        wins (on a tie the earlier form, and a form over the powers: it is simpler)."""
         terms = list(terms)
         for name in sorted({r.variable for r in self._rated.values() if r.form in RATE_FORMS}):
             powers = [t for t in terms if _power_of(t) == name]
