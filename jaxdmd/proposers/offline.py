@@ -21,13 +21,12 @@ the best small subset of blocks, prune terms whose fitted effect is negligible, 
 equations between two parents (each equation from the parent with the lower loss on it). New
 terms are drawn from a softmax over how much of the equation's residual each explains once the
 terms already present are projected out (with some uniform exploration), on a subsample of the
-data the proposer was built with. A term is admitted, and
-backward elimination keeps it, only if it lowers the equation's leave-one-recording-out error
-(when the data hold several recordings) by a few per cent: a term that only fits the noise of one
-recording does not help predict another. Variable requests rank the catalog variables outside
-the library by the explained share; a boundary phasor (a magnitude and an angle, both outside)
-is ranked as one candidate and requested as a pair, since its projections need both.
-Deterministic given the request's seed.
+data the proposer was built with. A term is admitted, and backward elimination keeps it, only if
+it lowers the equation's leave-one-recording-out error (when the data hold several recordings)
+by a few per cent: a term that only fits the noise of one recording does not help predict
+another. Variable requests rank the catalog variables outside the library by the explained
+share; a boundary phasor (a magnitude and an angle, both outside) is ranked as one candidate and
+requested as a pair, since its projections need both. Deterministic given the request's seed.
 """
 
 from __future__ import annotations
@@ -170,12 +169,10 @@ def _strip(node: ast.expr) -> str | None:
 def _power_of(term: str) -> str | None:
     """The variable ``term`` is a power of (``x``, ``x * x``, ``x * x * x``), else None."""
     factors = _factors(ast.parse(term, mode="eval").body)
-    names = {f.id for f in factors if isinstance(f, ast.Name)}
-    return (
-        names.pop()
-        if len(names) == 1 and len(factors) == sum(isinstance(f, ast.Name) for f in factors)
-        else None
-    )
+    if not all(isinstance(f, ast.Name) for f in factors):
+        return None
+    names = {f.id for f in factors}  # type: ignore[attr-defined]
+    return names.pop() if len(names) == 1 else None
 
 
 def wrap(text: str) -> str:
@@ -295,6 +292,12 @@ def _literal(value: float) -> str:
     return f"{value:.4g}"
 
 
+def _rate_grid(form: str, variable: str, scale: float) -> list[Rated]:
+    """``form`` of ``variable`` at each rate of ``_RATE_GRID`` over ``scale`` (its largest
+    magnitude), to three digits."""
+    return [Rated(form, variable, float(f"{r / scale:.3g}")) for r in _RATE_GRID]
+
+
 def _polynomial_blocks(variables: Sequence[Variable], data: Mapping[str, np.ndarray]) -> list[str]:
     """The level-one blocks that are a variable or its deviation (no function applied): each
     variable but angles (they enter through sines and cosines) and times (as forcings), a
@@ -345,9 +348,7 @@ def second_tier(
             scale = float(np.max(np.abs(values)))
             if scale > 0:
                 for form in RATE_FORMS:
-                    for r in _RATE_GRID:
-                        item = Rated(form, v.name, float(f"{r / scale:.3g}"))
-                        rated[item.term] = item
+                    rated.update((item.term, item) for item in _rate_grid(form, v.name, scale))
         elif v.unit == TIME:
             span = float(np.ptp(values))
             if span > 0:
@@ -749,19 +750,16 @@ class OfflineProposer:
             scale = float(np.max(np.abs(self.data[name])))
             best, error = terms, settled(self.held_out(j, terms))
             for form in RATE_FORMS:
-                grid = []
-                for r in _RATE_GRID:
-                    item = Rated(form, name, float(f"{r / scale:.3g}"))
+                grid = _rate_grid(form, name, scale)
+                for item in grid:
                     self._rated.setdefault(item.term, item)
-                    grid.append(item.term)
-                share = self.explained(j, rest, grid)
+                share = self.explained(j, rest, [item.term for item in grid])
                 if share.max() <= NOTHING:
                     continue
-                candidate = [*rest, self._refine(j, rest, grid[ties.argmax(share)])]
-                if settled(self.held_out(j, candidate)) < error or (
-                    best is terms and settled(self.held_out(j, candidate)) == error
-                ):
-                    best, error = candidate, settled(self.held_out(j, candidate))
+                candidate = [*rest, self._refine(j, rest, grid[ties.argmax(share)].term)]
+                found = settled(self.held_out(j, candidate))
+                if found < error or (best is terms and found == error):
+                    best, error = candidate, found
             terms = best
         return terms
 
