@@ -728,6 +728,8 @@ def run_generator(
     if o_de is not None:
         import dataclasses
 
+        info["oracle"]["ae_test_r2"] = _ae_test_r2(o_ae, test)
+
         true_ae = dataclasses.replace(o_ae, params=tuple(truth["ae"].values()))
         for key, mode, o_ae_row in (
             ("oracle_de", "de", None),
@@ -747,6 +749,7 @@ def run_generator(
     def plain() -> tuple[Callable, float, dict[str, Any]]:
         t0 = time.perf_counter()
         p_de, p_ae, info["oracle_plain"] = fit_oracle_plain(train, jax.random.key(args.seed))
+        info["oracle_plain"]["ae_test_r2"] = _ae_test_r2(p_ae, test)
         return (lambda ds: rollout(p_de, ds, ae=p_ae, mode="dae")), time.perf_counter() - t0, {}
 
     record("oracle_plain_dae", plain)
@@ -792,6 +795,17 @@ def run_generator(
             rows[key] = row
             _log(f"gen {gen}: {key}: {_short(row)}")
     return {"rows": rows, **info}, traj
+
+
+def _ae_test_r2(ae: Any, test: Sequence[Any]) -> dict[str, float] | dict[str, str]:
+    """R^2 of each algebraic equation on the test recordings (their states measured), as the
+    run reports jaxdmd's (``summary["ae"]["test_r2"]``)."""
+    from jaxdmd.rollout import algebraic_r2
+
+    try:
+        return algebraic_r2(ae, list(test))
+    except Exception as exc:  # a diagnostic: never the row's failure
+        return {"error": f"{type(exc).__name__}: {exc}"}
 
 
 def _short(row: Mapping[str, Any]) -> str:
@@ -847,6 +861,16 @@ def plot(path: Path, gen: int, traj: Mapping[str, np.ndarray], rows: Mapping[str
 
 ACCEPT = {"mape": 0.2, "r2": 0.97, "max_mape": 1.0}
 ACCEPT_ROW = "jaxdmd_dae"
+# the algebraic equations' test R^2: the variables the oracle writes (the default run's
+# acceptance asks 0.999 of each on its generator, 31)
+AE_R2_VARIABLES = ("i_d", "i_q", "P_e")
+AE_R2_GOAL = 0.999
+DEFAULT_GENERATOR = 31  # python -m jaxdmd.run's
+AE_R2_SOURCES = {
+    "jaxdmd": "jaxdmd",
+    "oracle": "oracle (pipeline)",
+    "oracle_plain": "oracle (plain fit)",
+}
 
 
 def seed_summary(per_generator: Mapping[Any, Mapping[str, Any]], key: str) -> dict[str, Any]:
@@ -928,7 +952,66 @@ def pool(per_seed: Mapping[int, Mapping[Any, Mapping[str, Any]]]) -> dict[str, A
         "per_seed": seeds,
         "acceptance": acceptance({s: v[ACCEPT_ROW] for s, v in seeds.items()}),
         "cells": cells,
+        "ae_r2": {str(seed): ae_r2_summary(gens) for seed, gens in sorted(per_seed.items())},
     }
+
+
+def _ae_r2_of(g: Mapping[str, Any], source: str) -> Mapping[str, Any]:
+    """One generator's algebraic test R^2 by ``source`` (AE_R2_SOURCES; {} where missing)."""
+    if source == "jaxdmd":
+        return (g.get("discovery", {}).get("ae") or {}).get("test_r2") or {}
+    return g.get(source, {}).get("ae_test_r2") or {}
+
+
+def ae_r2_summary(per_generator: Mapping[Any, Mapping[str, Any]]) -> dict[str, Any]:
+    """Per variable of AE_R2_VARIABLES and source: the default generator's test R^2 and the
+    median and minimum over the generators that have it."""
+    out: dict[str, Any] = {}
+    for var in AE_R2_VARIABLES:
+        out[var] = {}
+        for source in AE_R2_SOURCES:
+            values = {
+                int(gen): float(_ae_r2_of(g, source)[var])
+                for gen, g in per_generator.items()
+                if isinstance(_ae_r2_of(g, source).get(var), int | float)
+            }
+            finite = [v for v in values.values() if math.isfinite(v)]
+            out[var][source] = {
+                "default_generator": values.get(DEFAULT_GENERATOR),
+                "median": float(np.median(finite)) if finite else None,
+                "min": min(finite) if finite else None,
+                "n": len(values),
+            }
+    return out
+
+
+def ae_r2_markdown(ae_r2: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The table of the algebraic equations' test R^2 per seed (``pool``'s ``ae_r2``)."""
+    head = " | ".join(
+        f"{label} gen {DEFAULT_GENERATOR} | {label} median (min)"
+        for label in AE_R2_SOURCES.values()
+    )
+    lines = [
+        "Algebraic equations on the test recordings (R^2 with the states measured, "
+        "`summary.json`'s `ae.test_r2`): jaxdmd's lines against the true structure fitted by "
+        "the same pipeline (oracle) and by plain least squares on the noisy states (oracle, "
+        f"plain fit); generator {DEFAULT_GENERATOR} is the default run's (its acceptance asks "
+        f"{AE_R2_GOAL} of each), the median and minimum are over the seed's generators:",
+        "",
+        f"| seed | variable | {head} |",
+        "|---|---|" + "---|---|" * len(AE_R2_SOURCES),
+    ]
+    for seed, per_var in ae_r2.items():
+        for var in AE_R2_VARIABLES:
+            cells = []
+            for source in AE_R2_SOURCES:
+                m = per_var.get(var, {}).get(source, {})
+                cells += [
+                    _fmt(m.get("default_generator"), ".5f"),
+                    f"{_fmt(m.get('median'), '.5f')} ({_fmt(m.get('min'), '.4f')})",
+                ]
+            lines.append(f"| {seed} | {var} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def pooled_markdown(result: Mapping[str, Any]) -> str:
@@ -1002,6 +1085,8 @@ def pooled_markdown(result: Mapping[str, Any]) -> str:
                 flag = " (diverged)" if c.get("n_diverged") else ""
                 row.append(f"{_fmt(c['mape'], '.3g')} / {_fmt(c['r2'], '.4g')}{flag}")
         lines.append(f"| {gb} | " + " | ".join(row) + " |")
+    if result.get("ae_r2"):
+        lines += ["", *ae_r2_markdown(result["ae_r2"])]
     if result.get("wall_time_s") is not None:
         lines += [
             "",

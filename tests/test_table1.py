@@ -217,6 +217,31 @@ def test_pool_and_acceptance() -> None:
     assert "with 2 job(s)" in md
 
 
+def test_algebraic_test_r2_per_seed_against_the_oracle() -> None:
+    """The algebraic equations' test R^2 per seed: the default generator's value, the median
+    and minimum over the generators, for jaxdmd and both oracles; a generator without a value
+    (an oracle that failed) is left out, not counted as zero."""
+
+    def gen(jax_iq: float, oracle_iq: float | None) -> dict:
+        oracle = {} if oracle_iq is None else {"ae_test_r2": {"i_d": 1.0, "i_q": oracle_iq}}
+        return {
+            "rows": {},
+            "discovery": {"ae": {"test_r2": {"i_d": 0.9999, "i_q": jax_iq, "P_e": 0.999}}},
+            "oracle": oracle,
+            "oracle_plain": {"ae_test_r2": {"error": "RuntimeError: boom"}},
+        }
+
+    summary = table1.ae_r2_summary({30: gen(0.5, 0.4), 31: gen(0.997, 0.998), 32: gen(0.99, None)})
+    iq = summary["i_q"]
+    assert iq["jaxdmd"]["default_generator"] == pytest.approx(0.997)
+    assert iq["jaxdmd"]["median"] == pytest.approx(0.99) and iq["jaxdmd"]["min"] == 0.5
+    assert iq["oracle"]["n"] == 2 and iq["oracle"]["median"] == pytest.approx(0.699)
+    assert iq["oracle_plain"] == {"default_generator": None, "median": None, "min": None, "n": 0}
+    assert summary["P_e"]["oracle"]["n"] == 0
+    md = "\n".join(table1.ae_r2_markdown({"2": summary}))
+    assert "| 2 | i_q | 0.99700 | 0.99000 (0.5000) | 0.99800 | 0.69900 (0.4000) | - | - (-) |" in md
+
+
 def test_jobs_and_layout(tmp_path: Path) -> None:
     out = tmp_path / "t1"
     assert table1.seed_folder(out, 2, multi=True) == out / "seed2"
