@@ -651,6 +651,11 @@ def discover(
 
     config = discovery_config(args)
     out.mkdir(parents=True, exist_ok=True)
+    from jaxdmd.search import write_json_atomic
+
+    # the pair's settings as a run records them: `python -m jaxdmd.run discover --resume OUT`
+    # redoes what follows the searches (their checkpoints are here) with the code at hand
+    write_json_atomic(out / "run.json", run_settings(gen, args))
     result = discover_model(
         train, test, config, key=jax.random.key(args.seed), checkpoints=out,
         observer=Progress(quiet=args.quiet_rounds), label=f"gen {gen} ",
@@ -660,6 +665,23 @@ def discover(
         summary["ae"] = {"rounds": 0, "stop_reason": summary.get("ae_skipped", "")}
     result.save(out, summary)
     return result.de, result.ae, summary
+
+
+def run_settings(gen: int, args: argparse.Namespace) -> dict[str, Any]:
+    """A pair's ``run.json`` (``jaxdmd.run``'s options; those not given are its defaults, as
+    :func:`discovery_config` takes :class:`jaxdmd.pipeline.DiscoveryConfig`'s)."""
+    return {
+        "generator": gen,
+        "seed": args.seed,
+        "operating_points": args.operating_points,
+        "noise": args.noise,
+        "rounds": args.rounds,
+        "prompts": args.prompts,
+        "samples": args.samples,
+        "islands": args.islands,
+        "no_recombine": args.no_recombine,
+        "integral": args.integral,
+    }
 
 
 def run_generator(

@@ -242,6 +242,24 @@ def test_algebraic_test_r2_per_seed_against_the_oracle() -> None:
     assert "| 2 | i_q | 0.99700 | 0.99000 (0.5000) | 0.99800 | 0.69900 (0.4000) | - | - (-) |" in md
 
 
+def test_a_pair_resumes_as_a_run_of_its_settings() -> None:
+    """A pair's run.json, restored as ``jaxdmd discover --resume`` restores it, gives the
+    run the pair's generator and seed and the discovery settings the pair ran with."""
+    import dataclasses
+
+    from jaxdmd.run import RUN_KEYS, build_parser, config_from_args
+
+    args = table1.build_parser().parse_args(["--out", "x", "--rounds", "7", "--seed", "3"])
+    saved = table1.run_settings(33, args)
+    assert set(saved) <= set(RUN_KEYS)
+    run = build_parser().parse_args(["discover"])
+    for key in RUN_KEYS:
+        setattr(run, key, saved.get(key, getattr(run, key)))
+    assert (run.generator, run.seed, run.rounds) == (33, 3, 7)
+    pair = table1.discovery_config(args)
+    assert dataclasses.replace(config_from_args(run), jobs=pair.jobs) == pair
+
+
 def test_jobs_and_layout(tmp_path: Path) -> None:
     out = tmp_path / "t1"
     assert table1.seed_folder(out, 2, multi=True) == out / "seed2"
