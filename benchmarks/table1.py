@@ -992,11 +992,8 @@ def ae_r2_summary(per_generator: Mapping[Any, Mapping[str, Any]]) -> dict[str, A
     for var in AE_R2_VARIABLES:
         out[var] = {}
         for source in AE_R2_SOURCES:
-            values = {
-                int(gen): float(_ae_r2_of(g, source)[var])
-                for gen, g in per_generator.items()
-                if isinstance(_ae_r2_of(g, source).get(var), int | float)
-            }
+            of = {int(gen): _ae_r2_of(g, source).get(var) for gen, g in per_generator.items()}
+            values = {gen: float(v) for gen, v in of.items() if isinstance(v, int | float)}
             finite = [v for v in values.values() if math.isfinite(v)]
             out[var][source] = {
                 "default_generator": values.get(DEFAULT_GENERATOR),

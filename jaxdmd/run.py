@@ -225,6 +225,13 @@ RUN_KEYS = (
 """The options a run records in run.json (and ``--resume`` restores)."""
 
 
+def restore(args: argparse.Namespace, saved: dict) -> None:
+    """``args`` with a run's recorded options (``run.json``); an option it does not record (a
+    newer one) keeps its default."""
+    for k in RUN_KEYS:
+        setattr(args, k, saved.get(k, getattr(args, k)))
+
+
 # ----------------------------------------------------------------------------------------------
 # the discovery command
 
@@ -289,8 +296,7 @@ def run_discover(args: argparse.Namespace) -> int:
             saved = json.loads((out / "run.json").read_text())
         except (OSError, ValueError) as err:
             raise ValueError(f"cannot resume from {out / 'run.json'}: {err}") from None
-        for k in RUN_KEYS:
-            setattr(args, k, saved.get(k, getattr(args, k)))  # a newer option: its default
+        restore(args, saved)
     else:
         out = Path(args.out or DEFAULT_OUT)
     progress = Progress()

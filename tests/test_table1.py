@@ -247,14 +247,13 @@ def test_a_pair_resumes_as_a_run_of_its_settings() -> None:
     run the pair's generator and seed and the discovery settings the pair ran with."""
     import dataclasses
 
-    from jaxdmd.run import RUN_KEYS, build_parser, config_from_args
+    from jaxdmd.run import RUN_KEYS, build_parser, config_from_args, restore
 
     args = table1.build_parser().parse_args(["--out", "x", "--rounds", "7", "--seed", "3"])
     saved = table1.run_settings(33, args)
     assert set(saved) <= set(RUN_KEYS)
     run = build_parser().parse_args(["discover"])
-    for key in RUN_KEYS:
-        setattr(run, key, saved.get(key, getattr(run, key)))
+    restore(run, saved)
     assert (run.generator, run.seed, run.rounds) == (33, 3, 7)
     pair = table1.discovery_config(args)
     assert dataclasses.replace(config_from_args(run), jobs=pair.jobs) == pair
