@@ -1414,10 +1414,11 @@ def select_algebraic(
     # front (and its choice) replaces the current line in turn, and the closed model simulates
     # the training recordings (fits held out) with it
     fits: dict[tuple[int, str], np.ndarray | None] = {}
-    by_fit = _closed_loro(
+    by_fit, by_fit_held_out = _closed_loro(
         held.state, derived, de, held.recordings, config, held.played_from, fits, held.windows
     )
     report["dae_nrmse_fit_choice"] = by_fit
+    report["dae_nrmse_fit_choice_per_held_out"] = [float(x) for x in by_fit_held_out]
     current_lines, error = list(derived), by_fit
     changed = list(by_fit_changed)
     assembled: dict[tuple[str, ...], Equations | None] = {}
@@ -1491,7 +1492,7 @@ def _closed_choice(
     if not options:
         return None
     candidates = list(options.values())
-    trial_errors = _closed_trials(
+    trial_errors, held_out = _closed_trials(
         held.state, current_lines, j, candidates, de, held.recordings, config,
         held.played_from, fits, held.windows,
     )  # fmt: skip
@@ -1500,7 +1501,10 @@ def _closed_choice(
         for line, e in zip(candidates, trial_errors, strict=True)
     ]
     closed = entry.setdefault("closed", [])
-    closed += [{"line": line.text, "dae_nrmse": e} for line, _, e in trials]  # type: ignore[operator]
+    closed += [
+        {"line": line.text, "dae_nrmse": e, "per_held_out": [float(x) for x in rows]}
+        for (line, _, e), rows in zip(trials, held_out, strict=True)
+    ]  # type: ignore[operator]
     best = min([error, *(e for *_, e in trials)])
     near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
     # the lines simpler than the current one that simulate no worse
@@ -1668,19 +1672,20 @@ def _closed_loro(
     played_from: Sequence[Dataset] | None = None,
     fits: dict[tuple[int, str], np.ndarray | None] | None = None,
     windows: Sequence[tuple[int, int]] | None = None,
-) -> float:  # fmt: skip
+) -> tuple[float, np.ndarray]:  # fmt: skip
     """Mean NRMSE of the states of the closed model (state equations ``de``, algebraic lines
-    ``lines``), each recording simulated with the algebraic lines fitted on the others; inf if
-    a line does not compile or fit, or a rollout diverged. ``fits`` keeps each line's fold
-    parameters between calls (a line that stays is not fitted again)."""
+    ``lines``), each recording simulated with the algebraic lines fitted on the others, and
+    each held-out recording's (or time block's) own mean ``[B]``; inf if a line does not
+    compile or fit, or a rollout diverged. ``fits`` keeps each line's fold parameters between
+    calls (a line that stays is not fitted again)."""
     closure = _closure(ae_state, lines, len(recordings), fits)
     if closure is None:
-        return float("inf")
+        return float("inf"), np.full(len(recordings), np.inf)
     program, rows = closure
     errors = dae_errors(
         de, program, ae_state.contract.targets, rows, recordings, config, played_from, windows
     )
-    return float(np.mean(errors))
+    return float(np.mean(errors)), np.mean(errors, axis=1)
 
 
 def _closed_trials(
@@ -1689,14 +1694,16 @@ def _closed_trials(
     played_from: Sequence[Dataset] | None = None,
     fits: dict[tuple[int, str], np.ndarray | None] | None = None,
     windows: Sequence[tuple[int, int]] | None = None,
-) -> list[float]:  # fmt: skip
+) -> tuple[list[float], list[np.ndarray]]:  # fmt: skip
     """:func:`_closed_loro` of the closed model with each of ``options`` in place of line
-    ``j`` of ``lines``. The options that are sums of one-parameter terms run side by side as
-    rows of one batch (line ``j`` holding all their terms, each row's parameters zero on the
-    terms its option lacks); any other runs on its own."""
+    ``j`` of ``lines``: each option's mean error, and its held-out recordings' ``[B]``. The
+    options that are sums of one-parameter terms run side by side as rows of one batch (line
+    ``j`` holding all their terms, each row's parameters zero on the terms its option lacks);
+    any other runs on its own."""
     fits = {} if fits is None else fits
     n = len(recordings)
     errors = [float("inf")] * len(options)
+    held_out = [np.full(n, np.inf) for _ in options]
     renumbered = [ln.renumbered(line) for line in options]
     fitted = []  # (option index, its fold parameters [folds, P])
     for i, line in enumerate(renumbered):
@@ -1730,14 +1737,16 @@ def _closed_trials(
             None if played_from is None else list(played_from) * k,
             None if windows is None else list(windows) * k,
         )  # fmt: skip
-        for (i, _, _), e in zip(members, err.reshape(k, -1).mean(axis=1), strict=True):
-            errors[i] = float(e)
+        per_row = err.reshape(k, n, -1).mean(axis=2)
+        for m, ((i, _, _), e) in enumerate(zip(members, err.reshape(k, -1).mean(axis=1),
+                                               strict=True)):  # fmt: skip
+            errors[i], held_out[i] = float(e), per_row[m]
     for i in others:
         trial = [*lines[:j], options[i], *lines[j + 1 :]]
-        errors[i] = _closed_loro(
+        errors[i], held_out[i] = _closed_loro(
             ae_state, trial, de, recordings, config, played_from, fits, windows
         )
-    return errors
+    return errors, held_out
 
 
 def _fold_fit(

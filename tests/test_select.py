@@ -300,6 +300,11 @@ def test_a_spurious_algebraic_term_that_only_offsets_a_state_equation_error_is_d
     closed = {c["line"]: c["dae_nrmse"] for c in entry["closed"]}
     fit_error, true_error = report["dae_nrmse_fit_choice"], closed[line.text]
     assert fit_error < true_error <= 1.25 * fit_error, (fit_error, true_error)
+    # each trial's held-out recordings reported, their mean the trial's error
+    for c in entry["closed"]:
+        assert len(c["per_held_out"]) == len(recordings)
+        assert np.mean(c["per_held_out"]) == pytest.approx(c["dae_nrmse"], rel=1e-12)
+    assert np.mean(report["dae_nrmse_fit_choice_per_held_out"]) == pytest.approx(fit_error)
 
 
 def _sine_stand_in(amplitude: float, fit_choice: str = "p[0] * x + p[1] * theta"):
@@ -589,7 +594,7 @@ def test_one_recording_held_out_blocks_tell_an_algebraic_stand_in_from_the_truth
         problem, ae_contract = ae_problem(recordings, contract)
         state = search.init(problem, ae_contract, jax.random.key(0), search.SearchConfig())
         in_sample = [
-            _closed_loro(state, [line], de, recordings, config) for line in (truth, stand_in)
+            _closed_loro(state, [line], de, recordings, config)[0] for line in (truth, stand_in)
         ]
         assert in_sample[1] < 1.3 * in_sample[0], in_sample  # about the tolerance (1.25)
         held = _held_out(state, recordings, played_from=recordings)
@@ -604,7 +609,7 @@ def test_one_recording_held_out_blocks_tell_an_algebraic_stand_in_from_the_truth
                 held.played_from,
                 None,
                 held.windows,
-            )
+            )[0]
             for line in (truth, stand_in)
         ]
         assert blocks[1] > 1.5 * blocks[0], blocks
@@ -929,10 +934,16 @@ def test_candidates_side_by_side_score_as_each_alone():
     np.testing.assert_allclose(together, alone, rtol=1e-9)
     assert together[0] < together[1] and together[0] < together[2]
     # the closed model with each candidate in w's place
-    together = _closed_trials(ae_state, candidates[:1], 0, candidates, de, recordings, config)
+    # (its mean error and each held-out recording's, side by side as alone)
+    together, held_out = _closed_trials(
+        ae_state, candidates[:1], 0, candidates, de, recordings, config
+    )
     alone = [_closed_loro(ae_state, [c], de, recordings, config) for c in candidates]
     assert np.all(np.isfinite(together))
-    np.testing.assert_allclose(together, alone, rtol=1e-9)
+    np.testing.assert_allclose(together, [a[0] for a in alone], rtol=1e-9)
+    np.testing.assert_allclose(np.stack(held_out), np.stack([a[1] for a in alone]), rtol=1e-9)
+    assert np.stack(held_out).shape == (len(candidates), len(recordings))
+    np.testing.assert_allclose(np.mean(held_out, axis=1), together, rtol=1e-12)
     assert together[0] < together[1] and together[0] < together[2]
 
 
