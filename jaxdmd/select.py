@@ -1501,10 +1501,10 @@ def _closed_choice(
         for line, e in zip(candidates, trial_errors, strict=True)
     ]
     closed = entry.setdefault("closed", [])
-    closed += [
+    closed += [  # type: ignore[operator]
         {"line": line.text, "dae_nrmse": e, "per_held_out": [float(x) for x in rows]}
         for (line, _, e), rows in zip(trials, held_out, strict=True)
-    ]  # type: ignore[operator]
+    ]
     best = min([error, *(e for *_, e in trials)])
     near = [t for t in trials if t[2] <= best * (1 + config.tolerance)]
     # the lines simpler than the current one that simulate no worse
@@ -1737,10 +1737,9 @@ def _closed_trials(
             None if played_from is None else list(played_from) * k,
             None if windows is None else list(windows) * k,
         )  # fmt: skip
-        per_row = err.reshape(k, n, -1).mean(axis=2)
-        for m, ((i, _, _), e) in enumerate(zip(members, err.reshape(k, -1).mean(axis=1),
-                                               strict=True)):  # fmt: skip
-            errors[i], held_out[i] = float(e), per_row[m]
+        means, per_row = err.reshape(k, -1).mean(axis=1), err.reshape(k, n, -1).mean(axis=2)
+        for m, (i, _, _) in enumerate(members):
+            errors[i], held_out[i] = float(means[m]), per_row[m]
     for i in others:
         trial = [*lines[:j], options[i], *lines[j + 1 :]]
         errors[i], held_out[i] = _closed_loro(
