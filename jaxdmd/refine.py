@@ -124,9 +124,11 @@ def refit_bias_compensated(
     (first order); each equation that is affine in its parameters is refitted as
     p = (G'G - C)^-1 G'y. The other channels are taken as measured without noise. An equation
     that is not affine in p, or whose corrected matrix is not positive definite, keeps its
-    parameters. ``weights`` (``[targets, N]``, the recordings concatenated in the order of
-    ``estimates``) weight the samples (:func:`jaxdmd.select.weighted_by_recording`); default 1.
-    Returns the equations and, per target, what was done.
+    parameters; a line built from products of the others (:func:`jaxdmd.select.linked`) keeps
+    its coefficients and is built again from those lines as refitted. ``weights``
+    (``[targets, N]``, the recordings concatenated in the order of ``estimates``) weight the
+    samples (:func:`jaxdmd.select.weighted_by_recording`); default 1. Returns the equations
+    and, per target, what was done.
     """
 
     if any(e.covariance is None for e in estimates):
@@ -134,6 +136,9 @@ def refit_bias_compensated(
             "the bias compensation needs the states' covariances; these estimates have none "
             "(estimate.without_covariance)"
         )
+    given, link = equations, select.linked(equations)
+    if link is not None:  # a line built from the others moves with them
+        equations, origin = link
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
@@ -194,7 +199,7 @@ def refit_bias_compensated(
         params[list(mapping)] = np.linalg.solve(corrected, cross)[: len(mapping)]
         report[target] = "refitted"
     refit = dataclasses.replace(equations, params=tuple(float(x) for x in params))
-    return refit, report
+    return (refit if link is None else select.unlinked(refit, origin, given)), report
 
 
 # An algebraic equation holds when, fitted with the states unknown, its error keeps less than this
@@ -227,8 +232,12 @@ def refit_joint(
     estimate that uses every channel: the noisy states, their dynamics, and the clean algebraic
     measurements, which pin the states down where the equations hold. ``estimates`` are
     :func:`model_states` of the same ``datasets`` if the caller has them (their noise variances,
-    process noise and states are reused; else they are computed). Kept if it fails or does not
-    raise the likelihood. Returns the equations and a report.
+    process noise and states are reused; else they are computed). A line built from products of
+    the others (:func:`jaxdmd.select.composed_lines`: a power from the currents and voltages)
+    is fitted as the relation it is (:func:`jaxdmd.select.linked`): it moves with the lines it
+    reads, and its variable's measurements inform their parameters; it is written back as a
+    line in the states with the refitted lines in it (:func:`jaxdmd.select.unlinked`). Kept if
+    it fails or does not raise the likelihood. Returns the equations and a report.
     """
     import optimistix as optx
 
@@ -236,6 +245,9 @@ def refit_joint(
 
     if estimates is None or not estimates[0].from_model:
         estimates = model_states(de, datasets)
+    given, link = ae, select.linked(ae)
+    if link is not None:  # a line built from the others is fitted as the relation it is
+        ae, origin = link
     states = tuple(de.contract.targets)
     contract = ae.contract
     skeleton = ae.skeleton()
@@ -286,14 +298,15 @@ def refit_joint(
     report: dict[str, object] = {"steps": steps, "nll_before": before, "nll_after": after}
     if not (np.all(np.isfinite(params)) and np.isfinite(after) and after < before):
         report["kept"] = "the fit failed or did not raise the likelihood"
-        return ae, report
+        return given, report
     report["error_variance"] = dict(zip(contract.targets, fitted.tolist(), strict=True))
     # how well each equation holds: its error's standard deviation as a share of its variable's
     share = np.sqrt(fitted / (variance + 1e-300))
     report["error_share"] = dict(zip(contract.targets, share.tolist(), strict=True))
     report["not_holding"] = [t for t, x in zip(contract.targets, share, strict=True) if x > HOLDS]
     report["converged"] = steps < max_steps
-    return dataclasses.replace(ae, params=tuple(float(x) for x in params)), report
+    refitted = dataclasses.replace(ae, params=tuple(float(x) for x in params))
+    return (refitted if link is None else select.unlinked(refitted, origin, given)), report
 
 
 def _bic_penalty(datasets: Sequence[Dataset], targets: int) -> float:

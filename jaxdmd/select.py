@@ -621,6 +621,126 @@ def composed_lines(
     return _best_subset_lines(state, j, products, size)
 
 
+# one term of a composed line: its parameter's index in the equations, and the two lines it
+# multiplies (None: the constant)
+_Term = tuple[int, tuple[int, int] | None]
+
+
+def _composed_terms(equations: Equations) -> dict[int, list[_Term]]:
+    """The lines of ``equations`` built from products of its other lines
+    (:func:`composed_lines`), recognised by their factors: each factor is, to the last digit,
+    another line of ``equations`` with its parameters written in, and that line is not itself
+    composed. Per composed line, its terms in order."""
+    lines, mappings = ln.split_lines(equations.source)
+    values = np.asarray(equations.params, dtype=float)
+    written = {
+        ast.unparse(_with_constants(line, values[list(m)])): k
+        for k, (line, m) in enumerate(zip(lines, mappings, strict=True))
+    }
+    found: dict[int, list[_Term]] = {}
+    for j, line in enumerate(lines):
+        terms: list[_Term] = []
+        for summand in ln.summands(line.expr):
+            if (i := ln.param_index(summand)) is not None:
+                terms.append((mappings[j][i], None))
+                continue
+            product = summand.right if isinstance(summand, ast.BinOp) else None
+            i = ln.param_index(summand.left) if isinstance(summand, ast.BinOp) else None
+            if (
+                i is None or not isinstance(summand.op, ast.Mult)  # type: ignore[union-attr]
+                or not (isinstance(product, ast.BinOp) and isinstance(product.op, ast.Mult))
+            ):  # fmt: skip
+                break
+            a = written.get(ast.unparse(product.left))
+            b = written.get(ast.unparse(product.right))
+            if a is None or b is None or j in (a, b):
+                break
+            terms.append((mappings[j][i], (a, b)))
+        else:
+            if any(factors is not None for _, factors in terms):
+                found[j] = terms
+    return {
+        j: terms for j, terms in found.items()
+        if not any(k in found for _, factors in terms if factors for k in factors)
+    }  # fmt: skip
+
+
+def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
+    """``equations`` with each line built from products of its other lines
+    (:func:`composed_lines`, those lines' parameters written in as constants) written as the
+    relation it is among them: the products read the other lines' outputs by name
+    (``P_e_ = p[12] * i_q_ * v_q_ + ...``, as :func:`jaxdmd.identities.with_identities`
+    writes a measured relation). The outputs are the same; what differs is a fit of the
+    parameters: the composed line then moves with the lines it is built from (and its
+    variable's data inform their parameters) instead of keeping copies of them as they were.
+    Returns the equations and, for each of their parameters, its index in ``equations``
+    (:func:`unlinked` writes them back); None where no line is composed or the relations do
+    not compile."""
+    terms = _composed_terms(equations)
+    if not terms:
+        return None
+    lines, mappings = ln.split_lines(equations.source)
+    contract = equations.contract
+    outputs = list(contract.outputs)
+    kept = [k for k in range(len(lines)) if k not in terms]
+    origin = [i for k in kept for i in mappings[k]]
+    relations: list[str] = []
+    for j, line_terms in terms.items():
+        parts = []
+        for index, factors in line_terms:
+            n = len(origin)
+            origin.append(index)
+            parts.append(
+                f"p[{n}]" if factors is None
+                else f"p[{n}] * {outputs[factors[0]]} * {outputs[factors[1]]}"
+            )  # fmt: skip
+        relations.append(f"{outputs[j]} = {' + '.join(parts)}")
+    source = ln.assemble(
+        contract.function_name, contract.arguments, [lines[k] for k in kept],
+        [outputs[k] for k in kept], after=relations, returns=outputs,
+    )  # fmt: skip
+    try:
+        skeleton = _compile(source, contract)
+    except SkeletonError:
+        return None
+    params = tuple(float(equations.params[i]) for i in origin)
+    return dataclasses.replace(equations, source=skeleton.source, params=params), origin
+
+
+def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> Equations:
+    """``equations`` with the parameters of :func:`linked`'s form of them, ``fitted``
+    (``origin``: each parameter's index in ``equations``): the other lines take theirs, and each
+    composed line is built again from those lines as they now are (their parameters written in),
+    its coefficients ``fitted``'s. The inverse of :func:`linked`: the same outputs, in the
+    form the rest of the pipeline reads (every line in the states alone)."""
+    terms = _composed_terms(equations)
+    lines, mappings = ln.split_lines(equations.source)
+    values = np.asarray(equations.params, dtype=float).copy()
+    values[list(origin)] = np.asarray(fitted.params, dtype=float)
+    written = [
+        _with_constants(line, values[list(m)]) for line, m in zip(lines, mappings, strict=True)
+    ]
+    new = list(lines)
+    params: list[float] = []
+    for j, mapping in enumerate(mappings):
+        if j not in terms:
+            params += [float(values[i]) for i in mapping]
+            continue
+        parts = []
+        for n, (index, factors) in enumerate(terms[j]):
+            params.append(float(values[index]))
+            if factors is None:
+                parts.append(f"p[{n}]")
+            else:
+                product = ast.BinOp(written[factors[0]], ast.Mult(), written[factors[1]])
+                parts.append(f"p[{n}] * ({ast.unparse(product)})")
+        new[j] = ln.Line(ast.parse(" + ".join(parts), mode="eval").body, len(parts))
+    contract = equations.contract
+    source = ln.assemble(contract.function_name, contract.arguments, new, contract.outputs)
+    skeleton = _compile(source, contract)
+    return dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
+
+
 def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list[ln.Line]:
     """Candidate lines of algebraic variable ``j`` from the best subsets of the level-one
     building blocks (each variable or its deviation from 1, sines and cosines of angle

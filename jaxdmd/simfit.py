@@ -369,7 +369,10 @@ def refit_simulation(
     :class:`jaxdmd.select.SelectionConfig`) gives the guard's ``tolerance`` and the
     simulation's ``substeps`` and ``blowup``. The residual is that of the states simulated
     closed and with the measured algebraic variables played in, each scaled by the recording's
-    range (NRMSE). Returns the equations (refitted or as given) and a report: ``kept``
+    range (NRMSE). A line built from products of the other algebraic lines is fitted as the
+    relation it is among them (:func:`jaxdmd.select.linked`), so that it moves with them, and
+    written back with them in it (:func:`jaxdmd.select.unlinked`). Returns the equations
+    (refitted or as given) and a report: ``kept``
     (``"refit"`` or why not), what was left out (``held_out``: ``"recordings"`` or, with one
     recording, ``"time blocks (4)"``), the mean left-out NRMSE of the refit and the in-sample
     NRMSE of the given parameters on the same recordings or blocks (``loro``), the in-sample
@@ -381,15 +384,25 @@ def refit_simulation(
     train = list(train)
     played_from = train if played_from is None else list(played_from)
     report: dict[str, Any] = {}
+    given, link = ae, select.linked(ae)
+    if link is not None:  # a line built from the others moves with them
+        ae, origin = link
 
-    def done(reason: str, out: tuple[Equations, Equations] = (de, ae)) -> tuple[
+    def done(reason: str, out: tuple[Equations, Equations] = (de, given)) -> tuple[
         Equations, Equations, dict[str, Any]
     ]:  # fmt: skip
         report["kept"] = reason
         report["seconds"] = time.perf_counter() - start
+        if link is not None and folds:  # each fold's parameters in the given equations' order
+            n = len(de.params)
+            for theta in folds:
+                values = np.asarray(given.params, dtype=float).copy()
+                values[origin] = theta[n:]
+                theta[n:] = values.tolist()
         return out[0], out[1], report
 
     t0 = np.asarray(train[0].t)
+    folds: list[list[float]] = []
     if any(not np.array_equal(np.asarray(ds.t), t0) for ds in [*train, *played_from]):
         return done("given: the recordings do not share a time grid")
     sim = _Simulator(de, ae, train, played_from, config.substeps, config.blowup)
@@ -405,7 +418,6 @@ def refit_simulation(
         return _levenberg_marquardt(sim.factor(weight), theta, max_steps)
 
     b = len(train)
-    folds: list[list[float]] = []
     if fold_params:
         report["fold_params"] = folds
     if b > 1:
@@ -463,6 +475,8 @@ def refit_simulation(
         return done("given: the refit on every recording simulates them worse")
     de_new = dataclasses.replace(de, params=tuple(float(x) for x in theta[: sim.n_de]))
     ae_new = dataclasses.replace(ae, params=tuple(float(x) for x in theta[sim.n_de :]))
+    if link is not None:
+        ae_new = select.unlinked(ae_new, origin, given)
     return done("refit", (de_new, ae_new))
 
 

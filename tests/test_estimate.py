@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 from typing import Any
 
@@ -343,6 +344,51 @@ def test_the_ae_refits_in_a_worker_process_are_the_refits_here():
     assert away[0] == here[0]
     assert repr(away[1:]) == repr(here[1:])
     assert here[0].params[0] == pytest.approx(2.0, rel=0.002)  # the joint refit ran and kept
+
+
+def test_a_line_built_from_the_others_moves_with_them_in_the_refits():
+    """Hidden in the data: P = y z exactly, with y = 2 sin(a) + 5 (w - 1) and z = sin(a) +
+    20 (w - 1) measured clean. P's line is the product of y's and z's lines as the selection
+    builds it (their parameters written in as constants), from lines whose gains are 5 % off.
+    The joint likelihood refits y's and z's gains; P's line must be built from the refitted
+    lines (its factors are them to the last digit) with a coefficient near 1, not keep copies
+    of the lines as they were and bend its coefficient to them. The bias-compensated refit
+    likewise."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.refine import model_states, refit_bias_compensated, refit_joint
+    from jaxdmd.select import _composed_terms, _with_constants
+
+    _, de, _ = _sine_measured(noise=0.01)
+    base, truth = _recordings(n=2, noise=0.01)
+    recordings = []
+    for ds, c in zip(base, truth, strict=True):
+        y = 2.0 * np.sin(c["a"]) + 5.0 * (c["w"] - 1.0)
+        z = np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)
+        roles = dict.fromkeys(("y", "z", "P"), "algebraic")
+        recordings.append(ds.with_channels({"y": y, "z": z, "P": y * z}, roles))
+    estimates = model_states(de, recordings)
+    library = (Variable("u", "input"), *(Variable(n, "algebraic") for n in ("y", "z", "P")))
+    _, contract = ae_problem(
+        [e.dataset for e in estimates], dataclasses.replace(de.contract, library=library)
+    )
+    linear = "p[0] * jnp.sin(a) + p[1] * (w - 1)"
+    y_line, z_line = (ln.Line(ast.parse(linear, mode="eval").body, 2) for _ in range(2))
+    y0, z0 = (1.9, 4.75), (1.05, 19.0)  # 5 % off
+    factors = [ast.unparse(_with_constants(line, p)) for line, p in ((y_line, y0), (z_line, z0))]
+    source = f"def {contract.function_name}(a, w, p):\n    y_ = {linear}\n"
+    source += f"    z_ = {linear.replace('p[0]', 'p[2]').replace('p[1]', 'p[3]')}\n"
+    source += f"    P_ = p[4] * (({factors[0]}) * ({factors[1]}))\n    return y_, z_, P_\n"
+    start = Equations(contract, source, (*y0, *z0, 1.0), (0.0,) * 3, 0.0)
+    assert list(_composed_terms(start)) == [2]  # P's line is recognised as built from y's, z's
+
+    joint, report = refit_joint(de, start, recordings, estimates, max_steps=300)
+    compensated, _ = refit_bias_compensated(start, estimates)
+    for refit in (joint, compensated):
+        assert refit.params[:4] != pytest.approx((*y0, *z0), rel=1e-3)  # y's and z's moved
+        assert list(_composed_terms(refit)) == [2], refit.source  # P's factors moved with them
+    assert joint.params[:4] == pytest.approx((2.0, 5.0, 1.0, 20.0), rel=0.02)
+    assert joint.params[4] == pytest.approx(1.0, abs=0.01)
+    assert max(report["error_share"].values()) < 1e-3  # every line holds, P's too
 
 
 def _coupled_recordings(n: int = 2, noise: float = 0.01) -> tuple[list[Dataset], Equations]:

@@ -796,6 +796,58 @@ def test_an_algebraic_variable_built_from_the_others_is_written_in_their_lines()
     assert all(line.n_params == k + 1 for k, line in enumerate(lines))
 
 
+def test_a_line_built_from_the_others_is_linked_to_them_and_back():
+    """A composed line (a product of the other lines with their parameters written in, as the
+    selection builds it) is written as the relation it is, reading the others by name: the
+    outputs are the same; the others' parameters, changed in the linked form, rebuild it; and
+    written back unchanged, it is the line it was to the byte. A product whose factor is
+    another line's only to five digits is not linked."""
+    import jax.numpy as jnp
+
+    from jaxdmd.prompts import Contract, Variable
+    from jaxdmd.select import _with_constants, linked, unlinked
+
+    rng = np.random.default_rng(1)
+    data = {"a": rng.normal(size=50), "b": rng.normal(size=50)}
+    u_p, v_p = (2.0, -1.0), (1.0 / 3.0, 3.0)
+    line = ln.Line(ast.parse("p[0] * a + p[1] * b", mode="eval").body, 2)
+    u, v = (ast.unparse(_with_constants(line, p)) for p in (u_p, v_p))
+
+    def equations(u_text: str) -> search.Equations:
+        source = (
+            "def algebraic(a, b, p):\n    u_ = p[0] * a + p[1] * b\n"
+            "    v_ = p[2] * a + p[3] * b\n"
+            f"    w_ = p[4] + p[5] * (({u_text}) * ({v})) + p[6] * (({v}) * ({v}))\n"
+            "    return u_, v_, w_\n"
+        )
+        states = (Variable("a", "state"), Variable("b", "state"))
+        contract = Contract(
+            loop="AE", targets=("u", "v", "w"), states=states, function_name="algebraic"
+        )
+        params = (*u_p, *v_p, 0.1, 1.0, 0.3)
+        source = search._compile(source, contract).source  # as the pipeline writes it
+        return search.Equations(contract, source, params, (0.0,) * 3, 0.0)
+
+    def outputs(eq: search.Equations) -> np.ndarray:
+        skeleton = eq.skeleton()
+        values = skeleton({k: jnp.asarray(x) for k, x in data.items()}, jnp.asarray(eq.params))
+        return np.asarray(values)
+
+    given = equations(u)
+    link = linked(given)
+    assert link is not None
+    relation, origin = link
+    assert "w_ = p[4] + p[5] * u_ * v_ + p[6] * v_ * v_" in relation.source, relation.source
+    np.testing.assert_allclose(outputs(relation), outputs(given), rtol=1e-12)
+    back = unlinked(relation, origin, given)
+    assert (back.source, back.params) == (given.source, given.params)
+    moved = dataclasses.replace(relation, params=(2.5, *relation.params[1:]))
+    rebuilt = unlinked(moved, origin, given)
+    assert "2.5 * a" in ln.split_lines(rebuilt.source)[0][2].text
+    np.testing.assert_allclose(outputs(rebuilt), outputs(moved), rtol=1e-12)
+    assert linked(equations(u.replace("2.0", "2.00001"))) is None
+
+
 # ----------------------------------------------------------------------------------------------
 # the state equations chosen again in the closed model
 
