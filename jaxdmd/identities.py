@@ -34,12 +34,11 @@ from jaxdmd.proposers.offline import subset_errors
 from jaxdmd.search import (
     Equations,
     SearchState,
-    _compile,
     cross_validated_losses,
     sample_weights,
 )
-from jaxdmd.select import _folds
-from jaxdmd.skeleton import Skeleton, SkeletonError
+from jaxdmd.select import _folds, written_as_relations
+from jaxdmd.skeleton import Skeleton
 
 __all__ = ["Identity", "fitted_nmse", "measured_identities", "nmse_text", "with_identities"]
 
@@ -205,33 +204,20 @@ def with_identities(
     compile (over a skeleton's budget)."""
     contract = equations.contract
     targets = list(contract.targets)
-    outputs = list(contract.outputs)
     written = {i.target: i for i in identities}
     if any(v in written for i in identities for f in i.factors if f is not None for v in f):
         return None
-    lines, maps = ln.split_lines(equations.source)
-    kept = [k for k, t in enumerate(targets) if t not in written]
-    params = [float(equations.params[i]) for k in kept for i in maps[k]]
-    relations: list[str] = []
-    for identity in identities:
-        terms = []
-        for f, c in zip(identity.factors, identity.coefficients, strict=True):
-            n = len(params)
-            params.append(float(c))
-            if f is None:
-                terms.append(f"p[{n}]")
-            else:
-                a, b = (outputs[targets.index(v)] for v in f)
-                terms.append(f"p[{n}] * {a} * {b}")
-        relations.append(f"{outputs[targets.index(identity.target)]} = {' + '.join(terms)}")
-    source = ln.assemble(
-        contract.function_name, contract.arguments, [lines[k] for k in kept],
-        [outputs[k] for k in kept], after=relations, returns=outputs,
-    )  # fmt: skip
-    try:
-        skeleton = _compile(source, contract)
-    except SkeletonError:
+    relations = {
+        targets.index(identity.target): [
+            (c, None if f is None else (targets.index(f[0]), targets.index(f[1])))
+            for f, c in zip(identity.factors, identity.coefficients, strict=True)
+        ]
+        for identity in identities
+    }
+    compiled = written_as_relations(equations, relations)
+    if compiled is None:
         return None
+    skeleton, params = compiled
     fitted = _line_nmse(skeleton, params, state)
     losses = list(equations.losses)
     for identity in identities:

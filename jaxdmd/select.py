@@ -665,46 +665,64 @@ def _composed_terms(equations: Equations) -> dict[int, list[_Term]]:
     }  # fmt: skip
 
 
-def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
-    """``equations`` with each line built from products of its other lines
-    (:func:`composed_lines`, those lines' parameters written in as constants) written as the
-    relation it is among them: the products read the other lines' outputs by name
-    (``P_e_ = p[12] * i_q_ * v_q_ + ...``, as :func:`jaxdmd.identities.with_identities`
-    writes a measured relation). The outputs are the same; what differs is a fit of the
-    parameters: the composed line then moves with the lines it is built from (and its
-    variable's data inform their parameters) instead of keeping copies of them as they were.
-    Returns the equations and, for each of their parameters, its index in ``equations``
-    (:func:`unlinked` writes them back); None where no line is composed or the relations do
-    not compile."""
-    terms = _composed_terms(equations)
-    if not terms:
-        return None
+def written_as_relations(
+    equations: Equations, relations: dict[int, list[tuple[float, tuple[int, int] | None]]]
+) -> tuple[Skeleton, list[float]] | None:
+    """``equations`` with each line ``j`` of ``relations`` written as a relation among the
+    other lines' outputs, read by name after them (``P_e_ = p[12] * i_q_ * v_q_ + ...``): its
+    terms, each a coefficient (a parameter, set to the value given) times the product of two
+    other lines' outputs (their indices), or alone (None). Returns the compiled skeleton and its
+    parameters (the other lines' as they are, then the relations' coefficients); None where it
+    does not compile (over a skeleton's budget)."""
     lines, mappings = ln.split_lines(equations.source)
     contract = equations.contract
     outputs = list(contract.outputs)
-    kept = [k for k in range(len(lines)) if k not in terms]
-    origin = [i for k in kept for i in mappings[k]]
-    relations: list[str] = []
-    for j, line_terms in terms.items():
+    kept = [k for k in range(len(lines)) if k not in relations]
+    params = [float(equations.params[i]) for k in kept for i in mappings[k]]
+    statements: list[str] = []
+    for j, terms in relations.items():
         parts = []
-        for index, factors in line_terms:
-            n = len(origin)
-            origin.append(index)
+        for value, factors in terms:
             parts.append(
-                f"p[{n}]" if factors is None
-                else f"p[{n}] * {outputs[factors[0]]} * {outputs[factors[1]]}"
+                f"p[{len(params)}]" if factors is None
+                else f"p[{len(params)}] * {outputs[factors[0]]} * {outputs[factors[1]]}"
             )  # fmt: skip
-        relations.append(f"{outputs[j]} = {' + '.join(parts)}")
+            params.append(float(value))
+        statements.append(f"{outputs[j]} = {' + '.join(parts)}")
     source = ln.assemble(
         contract.function_name, contract.arguments, [lines[k] for k in kept],
-        [outputs[k] for k in kept], after=relations, returns=outputs,
+        [outputs[k] for k in kept], after=statements, returns=outputs,
     )  # fmt: skip
     try:
-        skeleton = _compile(source, contract)
+        return _compile(source, contract), params
     except SkeletonError:
         return None
-    params = tuple(float(equations.params[i]) for i in origin)
-    return dataclasses.replace(equations, source=skeleton.source, params=params), origin
+
+
+def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
+    """``equations`` with each line built from products of its other lines
+    (:func:`composed_lines`, those lines' parameters written in as constants) written as the
+    relation it is among them (:func:`written_as_relations`: the products read the other lines'
+    outputs by name, as :func:`jaxdmd.identities.with_identities` writes a measured relation).
+    The outputs are the same; what differs is a fit of the parameters: the composed line then
+    moves with the lines it is built from (and its variable's data inform their parameters)
+    instead of keeping copies of them as they were. Returns the equations and, for each of their
+    parameters, its index in ``equations`` (:func:`unlinked` writes them back); None where no
+    line is composed or the relations do not compile."""
+    terms = _composed_terms(equations)
+    if not terms:
+        return None
+    values = equations.params
+    written = written_as_relations(
+        equations, {j: [(values[i], factors) for i, factors in t] for j, t in terms.items()}
+    )
+    if written is None:
+        return None
+    skeleton, params = written
+    _, mappings = ln.split_lines(equations.source)
+    origin = [i for k, m in enumerate(mappings) if k not in terms for i in m]
+    origin += [i for t in terms.values() for i, _ in t]
+    return dataclasses.replace(equations, source=skeleton.source, params=tuple(params)), origin
 
 
 def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> Equations:

@@ -179,16 +179,11 @@ def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
     assert _holding(report, same_structure=False) is None
 
 
-def test_a_product_that_does_not_hold_is_rebuilt_from_the_lines_that_do():
-    """Three clean algebraic channels: y = 2 sin(a) + 5 (w - 1), z = sin(a) + 20 (w - 1) and
-    their product P = y z (the hidden effect: P is a product, as a power is of a voltage and a
-    current). y's and z's lines have their terms; P's is the stand-in p sin(a) + p (w - 1).
-    Fitted with the states unknown, P's line does not hold; the best product of the lines that
-    hold, screened by its held-out fit on the estimated states, refitted jointly and kept by the
-    likelihood less BIC's penalty, replaces it, and every line then holds. A variable not
-    offered is left as it is."""
-    from jaxdmd.problems import ae_problem
-    from jaxdmd.refine import HOLDS, model_states, refit_joint, refit_joint_products
+def _product_recordings() -> tuple[Equations, list[Dataset], list[Any], tuple[Variable, ...]]:
+    """The test system with y = 2 sin(a) + 5 (w - 1), z = sin(a) + 20 (w - 1) and their product
+    P = y z measured clean: the true state equations, the recordings, their states estimated by
+    the model, and the AE library."""
+    from jaxdmd.refine import model_states
 
     _, de, _ = _sine_measured(noise=0.01)
     base, truth = _recordings(n=2, noise=0.01)
@@ -200,6 +195,21 @@ def test_a_product_that_does_not_hold_is_rebuilt_from_the_lines_that_do():
         recordings.append(ds.with_channels({"y": y, "z": z, "P": y * z}, roles))
     estimates = model_states(de, recordings)
     library = (Variable("u", "input"), *(Variable(n, "algebraic") for n in ("y", "z", "P")))
+    return de, recordings, estimates, library
+
+
+def test_a_product_that_does_not_hold_is_rebuilt_from_the_lines_that_do():
+    """Three clean algebraic channels: y = 2 sin(a) + 5 (w - 1), z = sin(a) + 20 (w - 1) and
+    their product P = y z (the hidden effect: P is a product, as a power is of a voltage and a
+    current). y's and z's lines have their terms; P's is the stand-in p sin(a) + p (w - 1).
+    Fitted with the states unknown, P's line does not hold; the best product of the lines that
+    hold, screened by its held-out fit on the estimated states, refitted jointly and kept by the
+    likelihood less BIC's penalty, replaces it, and every line then holds. A variable not
+    offered is left as it is."""
+    from jaxdmd.problems import ae_problem
+    from jaxdmd.refine import HOLDS, refit_joint, refit_joint_products
+
+    de, recordings, estimates, library = _product_recordings()
     problem, contract = ae_problem(
         [e.dataset for e in estimates], dataclasses.replace(de.contract, library=library)
     )
@@ -355,19 +365,10 @@ def test_a_line_built_from_the_others_moves_with_them_in_the_refits():
     of the lines as they were and bend its coefficient to them. The bias-compensated refit
     likewise."""
     from jaxdmd.problems import ae_problem
-    from jaxdmd.refine import model_states, refit_bias_compensated, refit_joint
+    from jaxdmd.refine import refit_bias_compensated, refit_joint
     from jaxdmd.select import _composed_terms, _with_constants
 
-    _, de, _ = _sine_measured(noise=0.01)
-    base, truth = _recordings(n=2, noise=0.01)
-    recordings = []
-    for ds, c in zip(base, truth, strict=True):
-        y = 2.0 * np.sin(c["a"]) + 5.0 * (c["w"] - 1.0)
-        z = np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)
-        roles = dict.fromkeys(("y", "z", "P"), "algebraic")
-        recordings.append(ds.with_channels({"y": y, "z": z, "P": y * z}, roles))
-    estimates = model_states(de, recordings)
-    library = (Variable("u", "input"), *(Variable(n, "algebraic") for n in ("y", "z", "P")))
+    de, recordings, estimates, library = _product_recordings()
     _, contract = ae_problem(
         [e.dataset for e in estimates], dataclasses.replace(de.contract, library=library)
     )
