@@ -199,7 +199,17 @@ def refit_bias_compensated(
         params[list(mapping)] = np.linalg.solve(corrected, cross)[: len(mapping)]
         report[target] = "refitted"
     refit = dataclasses.replace(equations, params=tuple(float(x) for x in params))
-    return (refit if link is None else select.unlinked(refit, origin, given)), report
+    if link is None:
+        return refit, report
+    back = select.unlinked(refit, origin, given)
+    if back is None:
+        return given, dict.fromkeys(report, f"kept: {UNLINKED}")
+    return back, report
+
+
+# why a refit is not kept where a line built from the others cannot be written back with the
+# refitted lines in it (:func:`jaxdmd.select.unlinked`)
+UNLINKED = "the line built from the others exceeds a skeleton's size once refitted"
 
 
 # An algebraic equation holds when, fitted with the states unknown, its error keeps less than this
@@ -306,7 +316,13 @@ def refit_joint(
     report["not_holding"] = [t for t, x in zip(contract.targets, share, strict=True) if x > HOLDS]
     report["converged"] = steps < max_steps
     refitted = dataclasses.replace(ae, params=tuple(float(x) for x in params))
-    return (refitted if link is None else select.unlinked(refitted, origin, given)), report
+    if link is not None:
+        back = select.unlinked(refitted, origin, given)
+        if back is None:
+            report["kept"] = UNLINKED
+            return given, report
+        refitted = back
+    return refitted, report
 
 
 def _bic_penalty(datasets: Sequence[Dataset], targets: int) -> float:

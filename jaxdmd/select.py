@@ -725,12 +725,13 @@ def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
     return dataclasses.replace(equations, source=skeleton.source, params=tuple(params)), origin
 
 
-def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> Equations:
+def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> Equations | None:
     """``equations`` with the parameters of :func:`linked`'s form of them, ``fitted``
     (``origin``: each parameter's index in ``equations``): the other lines take theirs, and each
     composed line is built again from those lines as they now are (their parameters written in),
     its coefficients ``fitted``'s. The inverse of :func:`linked`: the same outputs, in the
-    form the rest of the pipeline reads (every line in the states alone)."""
+    form the rest of the pipeline reads (every line in the states alone). None where the line
+    so written exceeds a skeleton's size limits (its constants written out longer)."""
     terms = _composed_terms(equations)
     lines, mappings = ln.split_lines(equations.source)
     values = np.asarray(equations.params, dtype=float).copy()
@@ -755,7 +756,10 @@ def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> 
         new[j] = ln.Line(ast.parse(" + ".join(parts), mode="eval").body, len(parts))
     contract = equations.contract
     source = ln.assemble(contract.function_name, contract.arguments, new, contract.outputs)
-    skeleton = _compile(source, contract)
+    try:
+        skeleton = _compile(source, contract)
+    except SkeletonError:
+        return None
     return dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
 
 

@@ -476,7 +476,10 @@ def refit_simulation(
     de_new = dataclasses.replace(de, params=tuple(float(x) for x in theta[: sim.n_de]))
     ae_new = dataclasses.replace(ae, params=tuple(float(x) for x in theta[sim.n_de :]))
     if link is not None:
-        ae_new = select.unlinked(ae_new, origin, given)
+        back = select.unlinked(ae_new, origin, given)
+        if back is None:  # its constants written out longer
+            return done("given: a line built from the others exceeds a skeleton's size")
+        ae_new = back
     return done("refit", (de_new, ae_new))
 
 

@@ -356,7 +356,7 @@ def test_the_ae_refits_in_a_worker_process_are_the_refits_here():
     assert here[0].params[0] == pytest.approx(2.0, rel=0.002)  # the joint refit ran and kept
 
 
-def test_a_line_built_from_the_others_moves_with_them_in_the_refits():
+def test_a_line_built_from_the_others_moves_with_them_in_the_refits(monkeypatch):
     """Hidden in the data: P = y z exactly, with y = 2 sin(a) + 5 (w - 1) and z = sin(a) +
     20 (w - 1) measured clean. P's line is the product of y's and z's lines as the selection
     builds it (their parameters written in as constants), from lines whose gains are 5 % off.
@@ -390,6 +390,17 @@ def test_a_line_built_from_the_others_moves_with_them_in_the_refits():
     assert joint.params[:4] == pytest.approx((2.0, 5.0, 1.0, 20.0), rel=0.02)
     assert joint.params[4] == pytest.approx(1.0, abs=0.01)
     assert max(report["error_share"].values()) < 1e-3  # every line holds, P's too
+
+    # where P's line, built again from the refitted lines (their constants written out longer),
+    # would exceed a skeleton's size, the refits keep the given equations and say why
+    from jaxdmd.refine import UNLINKED
+    from jaxdmd.skeleton import checking
+
+    monkeypatch.setattr(checking, "MAX_SOURCE_CHARS", len(start.source) + 8)
+    joint, report = refit_joint(de, start, recordings, estimates, max_steps=300)
+    assert joint is start and report["kept"] == UNLINKED
+    compensated, verdicts = refit_bias_compensated(start, estimates)
+    assert compensated is start and set(verdicts.values()) == {f"kept: {UNLINKED}"}
 
 
 def _coupled_recordings(n: int = 2, noise: float = 0.01) -> tuple[list[Dataset], Equations]:
