@@ -138,7 +138,7 @@ def refit_bias_compensated(
         )
     given, link = equations, select.linked(equations)
     if link is not None:  # a line built from the others moves with them
-        equations, origin = link
+        equations = link.equations
     lines, mappings = ln.split_lines(equations.source)
     params = np.array(equations.params, dtype=float)
     contract = equations.contract
@@ -201,14 +201,14 @@ def refit_bias_compensated(
     refit = dataclasses.replace(equations, params=tuple(float(x) for x in params))
     if link is None:
         return refit, report
-    back = select.unlinked(refit, origin, given)
+    back = link.back(refit)
     if back is None:
         return given, dict.fromkeys(report, f"kept: {UNLINKED}")
     return back, report
 
 
 # why a refit is not kept where a line built from the others cannot be written back with the
-# refitted lines in it (:func:`jaxdmd.select.unlinked`)
+# refitted lines in it (:meth:`jaxdmd.select.Linked.back`)
 UNLINKED = "the line built from the others exceeds a skeleton's size once refitted"
 
 
@@ -246,7 +246,7 @@ def refit_joint(
     the others (:func:`jaxdmd.select.composed_lines`: a power from the currents and voltages)
     is fitted as the relation it is (:func:`jaxdmd.select.linked`): it moves with the lines it
     reads, and its variable's measurements inform their parameters; it is written back as a
-    line in the states with the refitted lines in it (:func:`jaxdmd.select.unlinked`). Kept if
+    line in the states with the refitted lines in it (:meth:`jaxdmd.select.Linked.back`). Kept if
     it fails or does not raise the likelihood. Returns the equations and a report.
     """
     import optimistix as optx
@@ -257,7 +257,7 @@ def refit_joint(
         estimates = model_states(de, datasets)
     given, link = ae, select.linked(ae)
     if link is not None:  # a line built from the others is fitted as the relation it is
-        ae, origin = link
+        ae = link.equations
     states = tuple(de.contract.targets)
     contract = ae.contract
     skeleton = ae.skeleton()
@@ -317,7 +317,7 @@ def refit_joint(
     report["converged"] = steps < max_steps
     refitted = dataclasses.replace(ae, params=tuple(float(x) for x in params))
     if link is not None:
-        back = select.unlinked(refitted, origin, given)
+        back = link.back(refitted)
         if back is None:
             report["kept"] = UNLINKED
             return given, report

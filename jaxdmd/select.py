@@ -699,16 +699,68 @@ def written_as_relations(
         return None
 
 
-def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
+@dataclass(frozen=True)
+class Linked:
+    """Equations with their composed lines written as relations (:func:`linked`), and the way
+    back to the form the rest of the pipeline reads."""
+
+    equations: Equations  # the relations' form
+    given: Equations  # the form with every line in the states
+    origin: tuple[int, ...]  # each parameter's index in ``given``
+    terms: dict[int, list[_Term]]  # ``given``'s composed lines (:func:`_composed_terms`)
+
+    def given_params(self, params: Sequence[float]) -> np.ndarray:
+        """Parameters of the relations' form as ``given``'s (the composed lines' factors are
+        not parameters there: :meth:`back` writes them in)."""
+        values = np.asarray(self.given.params, dtype=float).copy()
+        values[list(self.origin)] = np.asarray(params, dtype=float)
+        return values
+
+    def back(self, fitted: Equations) -> Equations | None:
+        """``given`` with the parameters of ``fitted`` (the relations' form, refitted): the other
+        lines take theirs, and each composed line is built again from those lines as they now
+        are (their parameters written in), its coefficients ``fitted``'s. The same outputs, in
+        the form the rest of the pipeline reads (every line in the states alone). None where
+        the line so written exceeds a skeleton's size limits (its constants written out
+        longer)."""
+        lines, mappings = ln.split_lines(self.given.source)
+        values = self.given_params(fitted.params)
+        written = [
+            _with_constants(line, values[list(m)]) for line, m in zip(lines, mappings, strict=True)
+        ]
+        new = list(lines)
+        params: list[float] = []
+        for j, mapping in enumerate(mappings):
+            if j not in self.terms:
+                params += [float(values[i]) for i in mapping]
+                continue
+            parts = []
+            for n, (index, factors) in enumerate(self.terms[j]):
+                params.append(float(values[index]))
+                if factors is None:
+                    parts.append(f"p[{n}]")
+                else:
+                    product = ast.BinOp(written[factors[0]], ast.Mult(), written[factors[1]])
+                    parts.append(f"p[{n}] * ({ast.unparse(product)})")
+            new[j] = ln.Line(ast.parse(" + ".join(parts), mode="eval").body, len(parts))
+        contract = self.given.contract
+        source = ln.assemble(contract.function_name, contract.arguments, new, contract.outputs)
+        try:
+            skeleton = _compile(source, contract)
+        except SkeletonError:
+            return None
+        return dataclasses.replace(self.given, source=skeleton.source, params=tuple(params))
+
+
+def linked(equations: Equations) -> Linked | None:
     """``equations`` with each line built from products of its other lines
     (:func:`composed_lines`, those lines' parameters written in as constants) written as the
     relation it is among them (:func:`written_as_relations`: the products read the other lines'
     outputs by name, as :func:`jaxdmd.identities.with_identities` writes a measured relation).
     The outputs are the same; what differs is a fit of the parameters: the composed line then
     moves with the lines it is built from (and its variable's data inform their parameters)
-    instead of keeping copies of them as they were. Returns the equations and, for each of their
-    parameters, its index in ``equations`` (:func:`unlinked` writes them back); None where no
-    line is composed or the relations do not compile."""
+    instead of keeping copies of them as they were (:meth:`Linked.back` writes a fit back).
+    None where no line is composed or the relations do not compile."""
     terms = _composed_terms(equations)
     if not terms:
         return None
@@ -722,45 +774,8 @@ def linked(equations: Equations) -> tuple[Equations, list[int]] | None:
     _, mappings = ln.split_lines(equations.source)
     origin = [i for k, m in enumerate(mappings) if k not in terms for i in m]
     origin += [i for t in terms.values() for i, _ in t]
-    return dataclasses.replace(equations, source=skeleton.source, params=tuple(params)), origin
-
-
-def unlinked(fitted: Equations, origin: Sequence[int], equations: Equations) -> Equations | None:
-    """``equations`` with the parameters of :func:`linked`'s form of them, ``fitted``
-    (``origin``: each parameter's index in ``equations``): the other lines take theirs, and each
-    composed line is built again from those lines as they now are (their parameters written in),
-    its coefficients ``fitted``'s. The inverse of :func:`linked`: the same outputs, in the
-    form the rest of the pipeline reads (every line in the states alone). None where the line
-    so written exceeds a skeleton's size limits (its constants written out longer)."""
-    terms = _composed_terms(equations)
-    lines, mappings = ln.split_lines(equations.source)
-    values = np.asarray(equations.params, dtype=float).copy()
-    values[list(origin)] = np.asarray(fitted.params, dtype=float)
-    written = [
-        _with_constants(line, values[list(m)]) for line, m in zip(lines, mappings, strict=True)
-    ]
-    new = list(lines)
-    params: list[float] = []
-    for j, mapping in enumerate(mappings):
-        if j not in terms:
-            params += [float(values[i]) for i in mapping]
-            continue
-        parts = []
-        for n, (index, factors) in enumerate(terms[j]):
-            params.append(float(values[index]))
-            if factors is None:
-                parts.append(f"p[{n}]")
-            else:
-                product = ast.BinOp(written[factors[0]], ast.Mult(), written[factors[1]])
-                parts.append(f"p[{n}] * ({ast.unparse(product)})")
-        new[j] = ln.Line(ast.parse(" + ".join(parts), mode="eval").body, len(parts))
-    contract = equations.contract
-    source = ln.assemble(contract.function_name, contract.arguments, new, contract.outputs)
-    try:
-        skeleton = _compile(source, contract)
-    except SkeletonError:
-        return None
-    return dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
+    relations = dataclasses.replace(equations, source=skeleton.source, params=tuple(params))
+    return Linked(relations, equations, tuple(origin), terms)
 
 
 def _block_lines(state: SearchState, j: int, size: int = COMPOSED_TERMS) -> list[ln.Line]:

@@ -371,7 +371,7 @@ def refit_simulation(
     closed and with the measured algebraic variables played in, each scaled by the recording's
     range (NRMSE). A line built from products of the other algebraic lines is fitted as the
     relation it is among them (:func:`jaxdmd.select.linked`), so that it moves with them, and
-    written back with them in it (:func:`jaxdmd.select.unlinked`). Returns the equations
+    written back with them in it (:meth:`jaxdmd.select.Linked.back`). Returns the equations
     (refitted or as given) and a report: ``kept``
     (``"refit"`` or why not), what was left out (``held_out``: ``"recordings"`` or, with one
     recording, ``"time blocks (4)"``), the mean left-out NRMSE of the refit and the in-sample
@@ -386,19 +386,17 @@ def refit_simulation(
     report: dict[str, Any] = {}
     given, link = ae, select.linked(ae)
     if link is not None:  # a line built from the others moves with them
-        ae, origin = link
+        ae = link.equations
 
     def done(reason: str, out: tuple[Equations, Equations] = (de, given)) -> tuple[
         Equations, Equations, dict[str, Any]
     ]:  # fmt: skip
         report["kept"] = reason
         report["seconds"] = time.perf_counter() - start
-        if link is not None and folds:  # each fold's parameters in the given equations' order
+        if link is not None:  # each fold's parameters in the given equations' order
             n = len(de.params)
             for theta in folds:
-                values = np.asarray(given.params, dtype=float).copy()
-                values[origin] = theta[n:]
-                theta[n:] = values.tolist()
+                theta[n:] = link.given_params(theta[n:]).tolist()
         return out[0], out[1], report
 
     t0 = np.asarray(train[0].t)
@@ -476,7 +474,7 @@ def refit_simulation(
     de_new = dataclasses.replace(de, params=tuple(float(x) for x in theta[: sim.n_de]))
     ae_new = dataclasses.replace(ae, params=tuple(float(x) for x in theta[sim.n_de :]))
     if link is not None:
-        back = select.unlinked(ae_new, origin, given)
+        back = link.back(ae_new)
         if back is None:  # its constants written out longer
             return done("given: a line built from the others exceeds a skeleton's size")
         ae_new = back

@@ -805,7 +805,7 @@ def test_a_line_built_from_the_others_is_linked_to_them_and_back():
     import jax.numpy as jnp
 
     from jaxdmd.prompts import Contract, Variable
-    from jaxdmd.select import _with_constants, linked, unlinked
+    from jaxdmd.select import _with_constants, linked
 
     rng = np.random.default_rng(1)
     data = {"a": rng.normal(size=50), "b": rng.normal(size=50)}
@@ -836,13 +836,15 @@ def test_a_line_built_from_the_others_is_linked_to_them_and_back():
     given = equations(u)
     link = linked(given)
     assert link is not None
-    relation, origin = link
+    relation = link.equations
     assert "w_ = p[4] + p[5] * u_ * v_ + p[6] * v_ * v_" in relation.source, relation.source
     np.testing.assert_allclose(outputs(relation), outputs(given), rtol=1e-12)
-    back = unlinked(relation, origin, given)
+    back = link.back(relation)
+    assert back is not None
     assert (back.source, back.params) == (given.source, given.params)
     moved = dataclasses.replace(relation, params=(2.5, *relation.params[1:]))
-    rebuilt = unlinked(moved, origin, given)
+    rebuilt = link.back(moved)
+    assert rebuilt is not None
     assert "2.5 * a" in ln.split_lines(rebuilt.source)[0][2].text
     np.testing.assert_allclose(outputs(rebuilt), outputs(moved), rtol=1e-12)
     assert linked(equations(u.replace("2.0", "2.00001"))) is None
