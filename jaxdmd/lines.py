@@ -228,22 +228,34 @@ def without_each_summand(line: Line) -> list[Line]:
     parts = summands(line.expr)
     if len(parts) < 2:
         return []
+    out = []
+    for k, part in enumerate(parts):
+        if param_indices(part):
+            rest = kept_summands(line, [i != k for i in range(len(parts))])
+            if rest is not None:
+                out.append(rest)
+    return out
+
+
+def kept_summands(line: Line, keep: Sequence[bool]) -> Line | None:
+    """``line`` with only the summands ``keep`` marks (one flag per :func:`summands`), its
+    parameters renumbered from ``p[0]``; None if no summand with a parameter is kept, or if
+    the summands share parameters (dropping one would change another)."""
+    parts = summands(line.expr)
+    if len(keep) != len(parts):
+        raise ValueError(f"{len(keep)} flags for {len(parts)} summands")
     params = [set(param_indices(s)) for s in parts]
     if any(a & b for i, a in enumerate(params) for b in params[i + 1 :]):
-        return []
-    out = []
-    for k in range(len(parts)):
-        if not params[k]:
-            continue
-        rest = [copy_tree(s) for i, s in enumerate(parts) if i != k]
-        expr = rest[0]
-        for s in rest[1:]:
-            expr = ast.BinOp(left=expr, op=ast.Add(), right=s)
-        renumber = _Renumber()
-        expr = ast.fix_missing_locations(renumber.visit(expr))
-        if renumber.mapping:
-            out.append(Line(expr, len(renumber.mapping)))
-    return out
+        return None
+    rest = [copy_tree(s) for s, k in zip(parts, keep, strict=True) if k]
+    if not rest:
+        return None
+    expr = rest[0]
+    for s in rest[1:]:
+        expr = ast.BinOp(left=expr, op=ast.Add(), right=s)
+    renumber = _Renumber()
+    expr = ast.fix_missing_locations(renumber.visit(expr))
+    return Line(expr, len(renumber.mapping)) if renumber.mapping else None
 
 
 def simple_summands(line: Line) -> list[Line]:
