@@ -65,6 +65,7 @@ from jaxdmd.select import (
     front_lines,
     inclusion_frequency,
     pool,
+    reference_free,
     select_algebraic,
     select_by_simulation,
     select_states_closed,
@@ -716,6 +717,15 @@ def _loop_summary(
     return out
 
 
+def _said_reference(observer: Observer, loop: str, dropped: dict[str, list[str]]) -> None:
+    """Tell the observer which summands of a loop's choice moved with the angle reference."""
+    if dropped:
+        observer.message(
+            f"{loop} terms that move with the network's angle reference left out: "
+            + "; ".join(f"{t}: {', '.join(terms)}" for t, terms in dropped.items())
+        )
+
+
 def _estimate_summary(estimates: Sequence[StateEstimate]) -> dict[str, object]:
     model = estimates[0].from_model
     out: dict[str, object] = {
@@ -834,6 +844,9 @@ def discover(
         de = search.final_equations(de_state, floor=floor, include=per_search)
     else:
         de = per_search[0]
+    # no term that moves with the network's angle reference (a rotor angle alone)
+    de, de_moving = reference_free(de_state, de)
+    _said_reference(observer, "DE", de_moving)
     # every state equation's samples weighted by its error variance in their recording (a
     # recording whose machine slipped poles has states, currents and voltages tens of times
     # noisier than the others', and unweighted it bends the fit): what follows fits on it
@@ -865,6 +878,8 @@ def discover(
     }
     if de_recording_weights:
         report["de"]["recording_weights"] = de_recording_weights
+    if de_moving:
+        report["de"]["reference_dropped"] = de_moving
     if selection is not None:
         report["de"]["selection"] = selection
     if len(de_states) > 1:
@@ -899,6 +914,8 @@ def discover(
             floor=1e-5 if fine else 1e-4,
         )  # fmt: skip
         ae_seconds += states_seconds
+        ae, ae_moving = reference_free(ae_state, ae)
+        _said_reference(observer, "AE", ae_moving)
         # every algebraic equation's samples weighted by its error variance in their recording
         # (estimated from the loop's choice): what follows fits on the reweighted problem
         weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
@@ -1014,6 +1031,8 @@ def discover(
         summary = _loop_summary(ae_state, ae, ae_seconds)
         if recording_weights:
             summary["recording_weights"] = recording_weights
+        if ae_moving:
+            summary["reference_dropped"] = ae_moving
         if ae_selection is not None:
             summary["selection"] = ae_selection
         if bias_report is not None:  # "params"/"equations" are then the refitted ones

@@ -1048,3 +1048,23 @@ def test_long_recordings_sum_their_errors_a_chunk_at_a_time(monkeypatch):
         assert np.isfinite(a).sum() >= 4  # (w's own line cannot close w)
         assert not np.array_equal(a[np.isfinite(a)], b[np.isfinite(b)])  # summed otherwise
         np.testing.assert_allclose(a, b, rtol=1e-12)
+
+
+def test_of_equally_simple_lines_within_the_tolerance_the_loops_own_line_is_chosen():
+    """Within the tolerance the simulation cannot tell lines apart: of those as simple as the
+    simplest, the loop's own line (listed first) is chosen, not the one that simulates a
+    little better; a simpler line, or the loop's line beyond the tolerance, is not held back."""
+    from jaxdmd.select import SelectionConfig, _choose
+
+    own, stand_in = _line("p[0] * x + p[1] * u + p[2] * y"), _line("p[0] * x + p[1] * u + p[2] * z")
+    longer = _line("p[0] * x + p[1] * u + p[2] * z + p[3] * w")
+    config, states = SelectionConfig(), {"x"}
+    chosen, report = _choose(
+        [own, stand_in, longer], np.array([0.0101, 0.0098, 0.0095]), config, states
+    )
+    assert chosen is own and report["chosen"] == own.text
+    chosen, _ = _choose([own, stand_in, longer], np.array([0.0130, 0.0098, 0.0095]), config, states)
+    assert chosen is stand_in  # the loop's line beyond 25 % of the best
+    simpler = _line("p[0] * x + p[1] * u")
+    chosen, _ = _choose([own, simpler], np.array([0.0095, 0.0101]), config, states)
+    assert chosen is simpler
