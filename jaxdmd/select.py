@@ -554,7 +554,7 @@ def reference_free(
     if not dropped:
         return equations, {}
     refitted = _assemble(state, lines)
-    if refitted is None:  # not a valid skeleton: cannot happen with summands left out
+    if refitted is None:  # the fit failed (a line with summands left out is a valid skeleton)
         return equations, {}
     return refitted, dropped
 
