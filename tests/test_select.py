@@ -409,6 +409,57 @@ def test_a_stand_in_as_large_as_the_true_line_is_replaced_where_the_likelihood_s
     assert [v["line"] for v in verdicts] == [line.text] and verdicts[0]["gain"] > 0
 
 
+@pytest.mark.parametrize(
+    ("ratings", "taken"),
+    [
+        # the stand-in rates above the current line but below the eligible true line: it stays out
+        ({"current": 0.0, "true": 9000.0, "stand-in": 1000.0}, False),
+        # above the eligible line too: the likelihood takes it
+        ({"current": 0.0, "true": 500.0, "stand-in": 1000.0}, True),
+    ],
+)
+def test_a_simpler_line_is_taken_only_if_the_likelihood_rates_it_above_the_line_it_would_replace(
+    ratings: dict[str, float], taken: bool
+):
+    """Where the closed choice has an eligible line (here the true x + sin theta, clearly
+    better than the current x + u) and a simpler line the noise cannot decide (the stand-in
+    x + theta), the likelihood is asked about the simpler line against the equations the step
+    would otherwise take, the eligible line's: a stand-in that merely beats the current line
+    must not win (Table I's generator 31 seed 1: i_q's stand-in rated 1,108 nats above the
+    fit choice and 9,993 below the stator equation, and was taken). The likelihood here rates
+    each set of equations by its line; its verdict is the stand-in's rating less the line it
+    would replace."""
+    from jaxdmd import select
+
+    state, _, _, _ = _sine_stand_in(0.45)
+    names = {
+        "p[0] * x + p[1] * u": "current",
+        "p[0] * x + p[1] * jnp.sin(theta)": "true",
+        "p[0] * x + p[1] * theta": "stand-in",
+    }
+    lines = {name: ln.Line(ast.parse(text, mode="eval").body, 2) for text, name in names.items()}
+    asked: list[list[str]] = []
+
+    def likelihood(equations):
+        rated = [names[ln.split_lines(eq.source)[0][0].text] for eq in equations]
+        asked.append(rated)
+        return [ratings[name] for name in rated]
+
+    true, stand_in = ((lines[n], [lines[n]], 0.01) for n in ("true", "stand-in"))
+    entry: dict[str, object] = {}
+    out = select._likelier(
+        state, [stand_in], [true], [lines["current"]], likelihood, {}, set(), entry
+    )
+    assert asked == [["true", "stand-in"]]
+    assert [t[0].text for t in out] == ([stand_in[0].text] if taken else [])
+    (verdict,) = entry["likelihood"]  # type: ignore[misc]
+    assert verdict["gain"] == ratings["stand-in"] - ratings["true"]
+    # with no eligible line it is asked against the current equations, as before
+    asked.clear()
+    out = select._likelier(state, [stand_in], [], [lines["current"]], likelihood, {}, set(), {})
+    assert asked == [["current", "stand-in"]] and [t[0].text for t in out] == [stand_in[0].text]
+
+
 def _one_recording_noisier() -> list[Dataset]:
     """Four recordings of y = 20 (x - theta) (x tracking u), x measured in the third with a
     hundred times the others' noise (a fifth of its range), derivatives estimated."""
