@@ -1451,7 +1451,8 @@ def _fits(state: SearchState, j: int, new: ln.Line, old: ln.Line, config: Select
 
 # The log-likelihood of each of several algebraic equation sets (their parameters fitted by
 # it, less BIC's penalty): :func:`select_algebraic`'s arbiter where the closed model and the
-# held-out fit cannot tell a simpler line from the current one. :func:`jaxdmd.pipeline.discover`
+# held-out fit cannot tell a simpler line from the one the step would take or keep
+# (:func:`_likelier`). :func:`jaxdmd.pipeline.discover`
 # passes the likelihood with the states unknown (:func:`jaxdmd.refine.joint_likelihood`).
 Likelihood = Callable[[Sequence[Equations]], Sequence[float]]
 # the simpler lines per variable that the likelihood may be asked about, each with the current
@@ -1686,8 +1687,9 @@ def _closed_choice(
     """One step of :func:`select_algebraic`'s closed choice for variable ``j``: ``options``
     (line texts to lines) each in place of the current line, simulated closed; the simplest of
     those that simulate better by more than the tolerance, or no worse and simpler while they
-    fit the variable within the tolerance (or that ``likelihood`` rates above the current
-    lines): the lines and their error, or None. The trials go into ``entry["closed"]``."""
+    fit the variable within the tolerance (or a simpler one that ``likelihood`` rates above
+    the lines it would replace: :func:`_likelier`): the lines and their error, or None. The
+    trials go into ``entry["closed"]``."""
     now = current_lines[j]
     options = {
         text: line for text, line in options.items()
