@@ -1455,8 +1455,8 @@ def _fits(state: SearchState, j: int, new: ln.Line, old: ln.Line, config: Select
 # (:func:`_likelier`). :func:`jaxdmd.pipeline.discover`
 # passes the likelihood with the states unknown (:func:`jaxdmd.refine.joint_likelihood`).
 Likelihood = Callable[[Sequence[Equations]], Sequence[float]]
-# the simpler lines per variable that the likelihood may be asked about, each with the current
-# equations (each costs a joint refit; on Table I no second line asked about was ever taken)
+# the simpler lines per variable that the likelihood may be asked about, each with the equations
+# it would replace (each costs a joint refit; on Table I no second line asked about was ever taken)
 LIKELIHOOD_TRIALS = 1
 
 
@@ -1735,34 +1735,34 @@ def _closed_choice(
             or (t[0].text in simpler and fitting[t[0].text])
         )
     ]  # fmt: skip
+    taken = min(eligible, key=lambda t: (_complexity(t[0], states), settled(t[2])), default=None)
     if likelihood is not None:  # within the noise on both yardsticks, and not taken
         undecided = [t for t in near if t not in eligible and fitting.get(t[0].text, False)]
-        eligible += _likelier(
-            ae_state, undecided, eligible, current_lines, likelihood, likelihoods, states, entry
+        likelier = _likelier(
+            ae_state, undecided, taken, current_lines, likelihood, likelihoods, states, entry
         )
-    if not eligible:
-        return None
-    _, lines, e = min(eligible, key=lambda t: (_complexity(t[0], states), settled(t[2])))
-    return lines, e
+        taken = likelier or taken
+    return None if taken is None else (taken[1], taken[2])
 
 
 def _likelier(
     ae_state: SearchState,
     candidates: Sequence[tuple[ln.Line, list[ln.Line], float]],
-    eligible: Sequence[tuple[ln.Line, list[ln.Line], float]],
+    default: tuple[ln.Line, list[ln.Line], float] | None,
     current: Sequence[ln.Line],
     likelihood: Likelihood,
     cache: dict[tuple[str, ...], float],
     states: set[str],
     entry: dict[str, object],
-) -> list[tuple[ln.Line, list[ln.Line], float]]:
+) -> tuple[ln.Line, list[ln.Line], float] | None:
     """Of ``candidates`` (lines no larger than the current one that simulate the closed model
-    and fit their variable within the tolerance of it, yet not taken), those whose equations
-    ``likelihood`` rates above the equations the step takes otherwise: where the closed model
+    and fit their variable within the tolerance of it, yet not taken), the first whose
+    equations ``likelihood`` rates above those the step takes otherwise (``default``, the
+    simplest eligible line; None if none is eligible), or None: where the closed model
     and the held-out fit see noise, the likelihood with the states unknown still sees a line
     that holds (an identity such as v_d = V sin(delta - theta) against a stand-in that bends to
     the estimated states' errors) and a small term a line needs (an armature resistance). Only
-    lines simpler than every eligible one are asked about, the simplest first, at most
+    lines simpler than ``default`` are asked about, the simplest first, at most
     :data:`LIKELIHOOD_TRIALS`, each with the equations it would replace (one call: a likelihood
     may rate them side by side): the simplest eligible line's, or where none is eligible the
     current ones. (Rated against the current equations where an eligible line had already
@@ -1771,9 +1771,8 @@ def _likelier(
     stator equation, eligible, that rates 9,993 nats above it.) Each verdict goes into
     ``entry["likelihood"]``."""
     # the equations the step takes without the likelihood: a simpler line must beat them
-    default = min(eligible, key=lambda t: (_complexity(t[0], states), settled(t[2])), default=None)
     replaced = current if default is None else default[1]
-    bound = min((_complexity(t[0], states) for t in eligible), default=None)
+    bound = None if default is None else _complexity(default[0], states)
     asked = sorted(
         (t for t in candidates if bound is None or _complexity(t[0], states) < bound),
         key=lambda t: (_complexity(t[0], states), settled(t[2])),
@@ -1791,13 +1790,13 @@ def _likelier(
             cache.update((k, float(v)) for (k, _), v in zip(ready, values, strict=True))
         return [cache[k] for k in keys]
 
-    verdicts, out = [], []
+    verdicts, out = [], None
     for t in asked:
         now, then = rated(replaced, t[1])
         gain = then - now
         verdicts.append({"line": t[0].text, "gain": gain})
         if gain > 0:
-            out.append(t)
+            out = t
             break
     if verdicts:
         entry["likelihood"] = verdicts

@@ -448,16 +448,17 @@ def test_a_simpler_line_is_taken_only_if_the_likelihood_rates_it_above_the_line_
     true, stand_in = ((lines[n], [lines[n]], 0.01) for n in ("true", "stand-in"))
     entry: dict[str, object] = {}
     out = select._likelier(
-        state, [stand_in], [true], [lines["current"]], likelihood, {}, set(), entry
+        state, [stand_in], true, [lines["current"]], likelihood, {}, set(), entry
     )
     assert asked == [["true", "stand-in"]]
-    assert [t[0].text for t in out] == ([stand_in[0].text] if taken else [])
+    assert (out[0].text if out else None) == (stand_in[0].text if taken else None)
     (verdict,) = entry["likelihood"]  # type: ignore[misc]
     assert verdict["gain"] == ratings["stand-in"] - ratings["true"]
     # with no eligible line it is asked against the current equations, as before
     asked.clear()
-    out = select._likelier(state, [stand_in], [], [lines["current"]], likelihood, {}, set(), {})
-    assert asked == [["current", "stand-in"]] and [t[0].text for t in out] == [stand_in[0].text]
+    out = select._likelier(state, [stand_in], None, [lines["current"]], likelihood, {}, set(), {})
+    assert asked == [["current", "stand-in"]]
+    assert out is not None and out[0].text == stand_in[0].text
 
 
 def _one_recording_noisier() -> list[Dataset]:
