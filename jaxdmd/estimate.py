@@ -262,17 +262,29 @@ class ModelSmoother:
         def run_states(q, r, y, u, h, left):
             return _filter_smoother(step, _identity, y[0], jnp.diag(r), y, u, h, left, q, r)
 
-        def run_joint(ae_p, q, r, y, u, h, left):
+        def observer(ae_p):
             relation = _call(ae.fn, ae_p, ae.arguments, states)
 
             def observe(x, uk):
                 return jnp.concatenate([x, relation(x, uk)])
 
+            return observe
+
+        def run_joint(ae_p, q, r, y, u, h, left):
             x0 = y[0, :n_states]
-            return _log_likelihood(step, observe, x0, jnp.diag(r[:n_states]), y, u, h, left, q, r)
+            return _log_likelihood(
+                step, observer(ae_p), x0, jnp.diag(r[:n_states]), y, u, h, left, q, r
+            )
+
+        def run_smoother(ae_p, q, r, y, u, h, left):
+            x0 = y[0, :n_states]
+            return _filter_smoother(
+                step, observer(ae_p), x0, jnp.diag(r[:n_states]), y, u, h, left, q, r
+            )
 
         self._run_states = jax.jit(run_states)
         self._run_joint = run_joint
+        self._run_smoother = jax.jit(run_smoother)
         states_only = jax.jit(
             jax.vmap(lambda *a: run_states(*a)[2], in_axes=(0, None, None, None, None, None))
         )
@@ -323,13 +335,23 @@ class ModelSmoother:
             total = total + jnp.sum(ll)
         return total
 
-    def smooth(self) -> list[StateEstimate]:
-        """The smoothed states of every recording (the states measured, not the AE targets)."""
+    def smooth(
+        self, ae_params: Sequence[float] | None = None, ae_variance: Sequence[float] | None = None
+    ) -> list[StateEstimate]:
+        """The smoothed states of every recording: from the states' own measurements, or with
+        ``ae_params`` and ``ae_variance`` (a smoother built with ``ae``) from the algebraic
+        measurements too, through the AE equations with those parameters and error variances."""
         n_states = len(self.states)
         out = []
         for k, (ds, var) in enumerate(zip(self.datasets, self.noise, strict=True)):
             y, u, h, left, r = self._recording(k)
-            m, cov, ll = self._run_states(self._q, jnp.asarray(r), y[:, :n_states], u, h, left)
+            if ae_params is None or not self.targets:
+                m, cov, ll = self._run_states(self._q, jnp.asarray(r), y[:, :n_states], u, h, left)
+            else:
+                rr = jnp.concatenate([r, jnp.asarray(ae_variance, dtype=r.dtype)])
+                m, cov, ll = self._run_smoother(
+                    jnp.asarray(ae_params, dtype=jnp.float64), self._q, rr, y, u, h, left
+                )
             values = {s: np.asarray(m[:, j]) for j, s in enumerate(self.states)}
             out.append(
                 StateEstimate(

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -57,6 +58,7 @@ from jaxdmd.refine import (
     refit_integral,
     refit_joint,
     refit_joint_products,
+    sharpened_states,
     smoothed_states,
 )
 from jaxdmd.search import Equations, Problem, RoundReport, SearchConfig, SearchState
@@ -916,6 +918,30 @@ def discover(
         ae_seconds += states_seconds
         ae, ae_moving = reference_free(ae_state, ae)
         _said_reference(observer, "AE", ae_moving)
+        sharpened = None
+        if fine and config.ae_joint:
+            # the states estimated again through the loop's lines that hold: what follows
+            # (the choice of lines, their fits) reads these
+            start = time.perf_counter()
+            with workers.one_blas_thread():  # the same estimate however many cores
+                sharper, sharpened = sharpened_states(
+                    de, ae, train, estimates, max_steps=config.ae_joint_steps
+                )
+            sharpened["seconds"] = time.perf_counter() - start
+            ae_seconds += sharpened["seconds"]
+            if sharper is not None:
+                estimates, regressors = sharper, [e.dataset for e in sharper]
+                states_summary = _estimate_summary(estimates)
+                ae_state = _with_states(ae_state, regressors, de.contract.targets)
+                observer.message(
+                    "States estimated again with the AE lines that hold: "
+                    + ", ".join(sharpened["through"])
+                )
+            elif sharpened.get("through"):
+                observer.message(
+                    "States not estimated again with the AE lines that hold ("
+                    + ", ".join(sharpened["through"]) + "): " + sharpened["kept"]
+                )  # fmt: skip
         # every algebraic equation's samples weighted by its error variance in their recording
         # (estimated from the loop's choice): what follows fits on the reweighted problem
         weighted, ae, recording_weights = weighted_by_recording(ae_state, ae)
@@ -1038,6 +1064,8 @@ def discover(
         if bias_report is not None:  # "params"/"equations" are then the refitted ones
             summary["bias_compensated"] = bias_report
         if states_summary is not None:
+            if sharpened is not None:
+                states_summary["sharpened"] = sharpened
             summary["states"] = states_summary
         identities = measured_identities(weighted, ae)
         if joint_report is not None:  # "params"/"equations" are then the refitted ones
@@ -1320,6 +1348,20 @@ def refit_algebraic(
             joint_report = {"kept": f"the joint refit failed: {err}"}
         joint_report["seconds"] = time.perf_counter() - start
     return ae, bias_report, joint_report
+
+
+def _with_states(
+    state: SearchState, datasets: Sequence[Dataset], states: Sequence[str]
+) -> SearchState:
+    """``state`` with its problem's state channels taken from ``datasets`` (the same
+    recordings, their states estimated again)."""
+    from jaxdmd.data import stack_samples
+
+    stacked = stack_samples(list(datasets), tuple(states))
+    variables = dict(state.problem.variables)
+    variables.update({s: jax.numpy.asarray(stacked[s]) for s in states if s in variables})
+    problem = eqx.tree_at(lambda p: p.variables, state.problem, variables)
+    return search.replace_state(state, problem=problem)
 
 
 def _ae_regressors(
