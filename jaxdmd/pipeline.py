@@ -937,10 +937,11 @@ def discover(
                     "States estimated again with the AE lines that hold: "
                     + ", ".join(sharpened["through"])
                 )
-            elif sharpened.get("through"):
+            elif sharpened.get("together") or sharpened.get("left_out"):
+                tried = {**sharpened.get("left_out", {}), **sharpened.get("together", {})}
                 observer.message(
                     "States not estimated again with the AE lines that hold ("
-                    + ", ".join(sharpened["through"]) + "): " + sharpened["kept"]
+                    + ", ".join(tried) + "): " + sharpened["kept"]
                 )  # fmt: skip
         # every algebraic equation's samples weighted by its error variance in their recording
         # (estimated from the loop's choice): what follows fits on the reweighted problem
