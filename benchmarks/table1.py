@@ -522,7 +522,9 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     matched and weighted with the defaults) with the search's fit settings, then refitted in
     the integral form (``refit_integral``, ``config.refit_window``); the states estimated with
     that DE (``model_states``; the generic smoother if it fails), the AE fitted to the AE loop's
-    problem on them (``ae_problem``), then ``refit_bias_compensated`` and ``refit_joint`` (kept
+    problem on them (``ae_problem``), the states estimated again through its lines that hold
+    and the AE fitted again on them (``sharpened_states``, with the joint refit), then
+    ``refit_bias_compensated`` and ``refit_joint`` (kept
     if it fails), then both refitted by simulation (``refit_simulation``: kept if it simulates
     left-out recordings better). Returns the DE and AE as :class:`jaxdmd.search.Equations` and
     what each step gave (parameters after every step, NMSEs, the refits' reports).
@@ -536,6 +538,7 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
         refit_bias_compensated,
         refit_integral,
         refit_joint,
+        sharpened_states,
         smoothed_states,
     )
 
@@ -592,6 +595,15 @@ def fit_oracle(train: Sequence[Any], config: Any, key: Any) -> tuple[Any, Any, d
     if contract.targets != ORACLE_AE_TARGETS:
         raise RuntimeError(f"oracle AE targets {contract.targets} != {ORACLE_AE_TARGETS}")
     ae = _fit_equations(ae_contract, ORACLE_AE_SOURCE, problem, ae_key, fit_config)
+    if estimates is not None and estimates[0].from_model and config.ae_joint:
+        # the states estimated again through the lines that hold, the AE fitted again on them
+        sharper, info["ae_states_sharpened"] = sharpened_states(
+            de, ae, train, estimates, max_steps=config.ae_joint_steps
+        )
+        if sharper is not None:
+            estimates, regressors = sharper, [e.dataset for e in sharper]
+            problem, _ = ae_problem(regressors, de_contract)
+            ae = _fit_equations(ae_contract, ORACLE_AE_SOURCE, problem, ae_key, fit_config)
     info["ae_states"] = "model" if estimates and estimates[0].from_model else "smoothed"
     info["ae_params_fit"] = named(ORACLE_AE_PARAMS, ae.params)
     info["ae_nmse"] = named(ORACLE_AE_TARGETS, ae.losses)
