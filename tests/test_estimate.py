@@ -146,15 +146,12 @@ def test_joint_refit_recovers_an_algebraic_coefficient_that_noise_attenuates():
     assert again.params[0] == pytest.approx(2.0, rel=0.002)
 
 
-def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
-    """Two clean algebraic channels, y = 2 sin(a) and z = sin(a) + 20 (w - 1), and the lines
-    p sin(a) for both: z's lacks its speed term (the hidden effect). Fitted with the states
-    unknown, y's line follows its channel to the noise model's precision and z's cannot: the
-    report names z, and only z, as not holding."""
-    from jaxdmd.refine import HOLDS, refit_joint
-
-    recordings, de, _ = _sine_measured(noise=0.01)
-    _, truth = _recordings(n=2, noise=0.01)
+def _missing_term(noise: float) -> tuple[list[Dataset], Equations, Equations, list[Any]]:
+    """The test system with y = 2 sin(a) and z = sin(a) + 20 (w - 1) measured clean, the true
+    state equations, the lines p sin(a) for both (z's misses its speed term) and the clean
+    states."""
+    recordings, de, _ = _sine_measured(noise=noise)
+    _, truth = _recordings(n=2, noise=noise)
     recordings = [
         ds.with_channels({"z": np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)}, {"z": "algebraic"})
         for ds, c in zip(recordings, truth, strict=True)
@@ -163,7 +160,17 @@ def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
     contract = Contract(loop="AE", targets=("y", "z"), states=states, function_name="algebraic")
     source = "def algebraic(a, p):\n    y_ = p[0] * jnp.sin(a)\n    z_ = p[1] * jnp.sin(a)\n"
     source += "    return y_, z_\n"
-    start = Equations(contract, source, (1.9, 1.0), (0.0, 0.0), 0.0)
+    return recordings, de, Equations(contract, source, (1.9, 1.0), (0.0, 0.0), 0.0), truth
+
+
+def test_the_joint_refit_names_the_algebraic_equation_that_misses_a_term():
+    """Two clean algebraic channels, y = 2 sin(a) and z = sin(a) + 20 (w - 1), and the lines
+    p sin(a) for both: z's lacks its speed term (the hidden effect). Fitted with the states
+    unknown, y's line follows its channel to the noise model's precision and z's cannot: the
+    report names z, and only z, as not holding."""
+    from jaxdmd.refine import HOLDS, refit_joint
+
+    recordings, de, start, _ = _missing_term(noise=0.01)
     _, report = refit_joint(de, start, recordings, max_steps=300)
     share = report["error_share"]
     assert share["y"] < HOLDS / 10 and share["z"] > 10 * HOLDS
@@ -188,17 +195,8 @@ def test_the_states_are_estimated_again_through_the_algebraic_lines_that_hold():
     that holds there is nothing to estimate again."""
     from jaxdmd.refine import DEPARTURE, HOLDS, model_states, sharpened_states
 
-    recordings, de, _ = _sine_measured(noise=0.03)
-    _, truth = _recordings(n=2, noise=0.03)
-    recordings = [
-        ds.with_channels({"z": np.sin(c["a"]) + 20.0 * (c["w"] - 1.0)}, {"z": "algebraic"})
-        for ds, c in zip(recordings, truth, strict=True)
-    ]
-    states = (Variable("a", "state"), Variable("w", "state"))
-    contract = Contract(loop="AE", targets=("y", "z"), states=states, function_name="algebraic")
-    source = "def algebraic(a, p):\n    y_ = p[0] * jnp.sin(a)\n    z_ = p[1] * jnp.sin(a)\n"
-    source += "    return y_, z_\n"
-    ae = Equations(contract, source, (1.9, 1.0), (0.0, 0.0), 0.0)
+    recordings, de, ae, truth = _missing_term(noise=0.03)
+    contract = ae.contract
     estimates = model_states(de, recordings)
 
     def rms(found: list[Any]) -> float:
